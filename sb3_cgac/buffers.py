@@ -1,0 +1,347 @@
+"""Rolling-window rollout buffer for CGAC, with Q-GAE(lambda) value targets (paper Eq. 9-10)."""
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
+from stable_baselines3.common.utils import get_device
+
+TensorObs = th.Tensor | dict[str, th.Tensor]
+NumpyObs = np.ndarray | dict[str, np.ndarray]
+# Q-function used for the targets: (observations, actions) -> values of shape (batch,)
+QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]
+
+# Observations with a larger magnitude are treated as corrupt, as in the paper's code
+OBS_ABS_LIMIT = 1e6
+
+
+class CGACSamples(NamedTuple):
+    observations: TensorObs
+    actions: th.Tensor
+    returns: th.Tensor
+    weights: th.Tensor
+
+
+class TerminalObservations(NamedTuple):
+    """Real last observations of the envs whose episode was cut by a time limit at one step."""
+
+    env_indices: th.Tensor
+    observations: TensorObs
+    ok: th.Tensor
+
+
+def sanitize_observations(obs: NumpyObs) -> tuple[NumpyObs, np.ndarray]:
+    """
+    Find the envs whose observation holds NaN, Inf or values beyond ``OBS_ABS_LIMIT`` and zero them,
+    so that no network ever sees them; the returned mask lets the buffer exclude those transitions.
+
+    :param obs: Batched observations (one row per env), an array or a dict of arrays
+    :return: The (possibly copied and cleaned) observations and a boolean array, True where the row is usable
+    """
+    if isinstance(obs, dict):
+        cleaned = {key: _sanitize_array(value) for key, value in obs.items()}
+        ok = np.logical_and.reduce([key_ok for _, key_ok in cleaned.values()])
+        return {key: value for key, (value, _) in cleaned.items()}, ok
+    return _sanitize_array(obs)
+
+
+def _sanitize_array(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if not np.issubdtype(obs.dtype, np.floating):
+        return obs, np.ones(len(obs), dtype=bool)
+    # A single comparison catches NaN (always False), +-Inf and huge values
+    ok: np.ndarray = (np.abs(obs.reshape(len(obs), -1)) <= OBS_ABS_LIMIT).all(axis=1)
+    if not ok.all():
+        obs = obs.copy()
+        obs[~ok] = 0
+    return obs, ok
+
+
+def _storage_dtype(space: spaces.Space) -> th.dtype:
+    # Float observations are stored in float32 (MuJoCo gives float64); integer ones (images) keep their type
+    if space.dtype is not None and np.issubdtype(space.dtype, np.floating):
+        return th.float32
+    return th.as_tensor(np.zeros(1, dtype=space.dtype)).dtype
+
+
+def _index_obs(obs: TensorObs, index: th.Tensor | int | slice) -> TensorObs:
+    if isinstance(obs, dict):
+        return {key: value[index] for key, value in obs.items()}
+    return obs[index]
+
+
+def _flatten_obs(obs: TensorObs, n_leading: int) -> TensorObs:
+    # Merge the first `n_leading` dimensions (time, env) into one batch dimension
+    def flatten(value: th.Tensor) -> th.Tensor:
+        return value.reshape(-1, *value.shape[n_leading:])
+
+    if isinstance(obs, dict):
+        return {key: flatten(value) for key, value in obs.items()}
+    return flatten(obs)
+
+
+def _nbytes(obs: TensorObs) -> int:
+    values = obs.values() if isinstance(obs, dict) else [obs]
+    return sum(value.element_size() * value.nelement() for value in values)
+
+
+class CGACRolloutBuffer:
+    """
+    Rolling window of the last ``buffer_window`` steps of every env (time-major ring buffer).
+
+    Per step and env it stores the observation, the (squashed) action, the reward, termination and
+    truncation flags and the *next action*: a fresh sample of the averaged actor at the next observation,
+    or at the real terminal observation for a time-limit truncation. The next observation is not stored
+    again: it is the following step's observation, the ``current observation`` of the buffer for the newest
+    step, or the kept terminal observation of a truncated episode.
+
+    Each collection of new steps ends with :meth:`compute_returns`, which evaluates the min-of-twin target Q
+    at (next observation, next action) for the new steps only (``Qbar``, computed once as in the paper's code)
+    and then the Q-GAE targets of the whole window (paper Eq. 9-10):
+    ``Y_t = r_t + g m_t Qbar_{t+1} + sum_{k>=1} (g lam)^k [r_{t+k} + g m_{t+k} Qbar_{t+k+1} - Qbar_{t+k}]``,
+    the sum being cut at episode ends, at the newest step of the window and after ``gae_horizon`` terms.
+
+    :param buffer_window: Number of steps kept per env (32 in the paper)
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param device: Device on which the data is stored and sampled
+    :param n_envs: Number of parallel environments
+    :param gamma: Discount factor
+    :param gae_lambda: lambda of Q-GAE
+    :param gae_horizon: Maximum number of reward terms in a target (None: the whole window)
+    """
+
+    def __init__(
+        self,
+        buffer_window: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        gamma: float = 0.99,
+        gae_lambda: float = 0.95,
+        gae_horizon: int | None = None,
+    ):
+        self.buffer_window = buffer_window
+        self.observation_space = observation_space
+        self.action_space = action_space
+        self.device = get_device(device)
+        self.n_envs = n_envs
+        self.gamma = gamma
+        self.gae_lambda = gae_lambda
+        self.gae_horizon = gae_horizon
+        self.action_dim = get_action_dim(action_space)
+        self.reset()
+
+    def _zeros_obs(self, leading: tuple[int, ...]) -> TensorObs:
+        def zeros(space: spaces.Space) -> th.Tensor:
+            return th.zeros((*leading, *get_obs_shape(space)), dtype=_storage_dtype(space), device=self.device)  # type: ignore[misc]
+
+        if isinstance(self.observation_space, spaces.Dict):
+            return {key: zeros(space) for key, space in self.observation_space.spaces.items()}
+        return zeros(self.observation_space)
+
+    def reset(self) -> None:
+        """Empty the window (the storage is allocated once here and reused)."""
+        shape = (self.buffer_window, self.n_envs)
+        self.observations = self._zeros_obs(shape)
+        self.actions = th.zeros((*shape, self.action_dim), device=self.device)
+        self.next_actions = th.zeros((*shape, self.action_dim), device=self.device)
+        self.rewards = th.zeros(shape, device=self.device)
+        self.terminated = th.zeros(shape, dtype=th.bool, device=self.device)
+        self.truncated = th.zeros(shape, dtype=th.bool, device=self.device)
+        self.obs_ok = th.ones(shape, dtype=th.bool, device=self.device)
+        self.reward_ok = th.ones(shape, dtype=th.bool, device=self.device)
+        self.next_values = th.zeros(shape, device=self.device)
+        self.returns = th.zeros(shape, device=self.device)
+        self.weights = th.zeros(shape, device=self.device)
+        self.terminal_observations: list[TerminalObservations | None] = [None] * self.buffer_window
+        # Observation of the envs now, i.e. the next observation of the newest step
+        self.current_obs = self._zeros_obs((self.n_envs,))
+        self.current_obs_ok = th.ones(self.n_envs, dtype=th.bool, device=self.device)
+        self.pos = 0
+        self.size = 0
+        # Newest steps whose Qbar and validity are not computed yet
+        self.n_pending = 0
+        # Transitions with a non-finite or huge observation or reward, since the last reset
+        self.n_nonfinite = 0
+
+    @property
+    def n_transitions(self) -> int:
+        return self.size * self.n_envs
+
+    def _copy_obs(self, dst: TensorObs, src: TensorObs) -> None:
+        if isinstance(dst, dict):
+            assert isinstance(src, dict)
+            for key, value in dst.items():
+                value.copy_(src[key])
+        else:
+            assert isinstance(src, th.Tensor)
+            dst.copy_(src)
+
+    def set_current_obs(self, obs: TensorObs, obs_ok: np.ndarray) -> None:
+        """
+        Set the observation the next step starts from (after a reset of the envs).
+
+        :param obs: Sanitized observations, one row per env
+        :param obs_ok: Which rows were finite before sanitizing
+        """
+        self._copy_obs(self.current_obs, obs)
+        self.current_obs_ok.copy_(th.as_tensor(obs_ok))
+
+    def add(
+        self,
+        actions: th.Tensor,
+        rewards: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        next_obs: TensorObs,
+        next_obs_ok: np.ndarray,
+        next_actions: th.Tensor,
+        terminal: TerminalObservations | None = None,
+    ) -> None:
+        """
+        Store one step of all envs; the step starts from the current observation, which becomes ``next_obs``.
+
+        :param actions: Squashed actions taken, shape (n_envs, action_dim)
+        :param rewards: Rewards, shape (n_envs,)
+        :param terminated: True where the episode ended in a terminal state
+        :param truncated: True where the episode was cut by a time limit (the env was reset)
+        :param next_obs: Sanitized observations after the step (after the reset for finished episodes)
+        :param next_obs_ok: Which rows of ``next_obs`` were finite before sanitizing
+        :param next_actions: Averaged-actor samples at the next observation, or at the terminal observation
+            for truncated envs, shape (n_envs, action_dim)
+        :param terminal: Terminal observations of the truncated envs
+        """
+        pos = self.pos
+        rewards = np.asarray(rewards, dtype=np.float32)
+        rewards_ok = np.isfinite(rewards)
+        if not rewards_ok.all():
+            rewards = np.where(rewards_ok, rewards, 0.0).astype(np.float32)
+        self.n_nonfinite += int(np.count_nonzero(~rewards_ok | ~np.asarray(next_obs_ok)))
+        if terminal is not None:
+            self.n_nonfinite += int(terminal.env_indices.numel() - terminal.ok.sum().item())
+
+        self._copy_obs(_index_obs(self.observations, pos), self.current_obs)
+        self.obs_ok[pos] = self.current_obs_ok
+        self.actions[pos] = actions
+        self.next_actions[pos] = next_actions
+        self.rewards[pos] = th.as_tensor(rewards)
+        self.reward_ok[pos] = th.as_tensor(rewards_ok)
+        self.terminated[pos] = th.as_tensor(terminated)
+        self.truncated[pos] = th.as_tensor(truncated)
+        self.terminal_observations[pos] = terminal
+        self.set_current_obs(next_obs, next_obs_ok)
+
+        self.pos = (pos + 1) % self.buffer_window
+        self.size = min(self.size + 1, self.buffer_window)
+        self.n_pending = min(self.n_pending + 1, self.buffer_window)
+
+    def _chronological_slots(self, n_steps: int) -> th.Tensor:
+        # Ring positions of the newest `n_steps` steps, oldest first
+        return (self.pos - n_steps + th.arange(n_steps, device=self.device)) % self.buffer_window
+
+    @th.no_grad()
+    def compute_returns(self, target_q: QFunction, max_batch: int = 65536) -> None:
+        """
+        Evaluate Qbar for the steps added since the last call, then recompute the Q-GAE targets of the window.
+
+        :param target_q: Min-of-twin target critic, ``(obs, actions) -> values``
+        :param max_batch: Largest batch given to ``target_q`` at once (bounds the memory of the forward pass)
+        """
+        n_new = self.n_pending
+        if n_new == 0:
+            return
+        slots = self._chronological_slots(n_new)
+        # Next observations of the new steps: each following step's observation, the current one for the newest
+        next_obs = _index_obs(self.observations, slots[1:])
+        if isinstance(next_obs, dict):
+            assert isinstance(self.current_obs, dict)
+            next_obs = {key: th.cat([value, self.current_obs[key][None]]) for key, value in next_obs.items()}
+        else:
+            assert isinstance(self.current_obs, th.Tensor)
+            next_obs = th.cat([next_obs, self.current_obs[None]])
+        flat_obs = _flatten_obs(next_obs, 2)
+        flat_actions = self.next_actions[slots].reshape(-1, self.action_dim)
+        values = th.cat(
+            [
+                target_q(_index_obs(flat_obs, slice(start, start + max_batch)), flat_actions[start : start + max_batch])
+                for start in range(0, flat_actions.shape[0], max_batch)
+            ]
+        )
+        self.next_values[slots] = values.reshape(n_new, self.n_envs)
+        next_ok = th.cat([self.obs_ok[slots[1:]], self.current_obs_ok[None]])
+
+        # Time-limit truncations bootstrap from the real terminal observation (a loop over steps, not envs)
+        for row, slot in enumerate(slots.tolist()):
+            terminal = self.terminal_observations[slot]
+            if terminal is not None:
+                idx = terminal.env_indices
+                self.next_values[slot, idx] = target_q(terminal.observations, self.next_actions[slot, idx])
+                next_ok[row, idx] = terminal.ok
+
+        valid = self.obs_ok[slots] & self.reward_ok[slots] & (self.terminated[slots] | next_ok)
+        self.weights[slots] = valid.float()
+        self.n_pending = 0
+        self._compute_q_gae()
+
+    def _compute_q_gae(self) -> None:
+        order = self._chronological_slots(self.size)
+        rewards, next_values = self.rewards[order], self.next_values[order]
+        terminated = self.terminated[order]
+        valid = self.weights[order] > 0
+        # The trace goes on into the next step unless the episode ended here, the next transition is
+        # excluded, or this is the newest step of the window
+        cont = ~(terminated | self.truncated[order])
+        cont[:-1] &= valid[1:]
+        cont[-1] = False
+        gamma_lam = self.gamma * self.gae_lambda
+        one_step = rewards + self.gamma * (~terminated) * next_values
+        returns = th.empty_like(rewards)
+        last = one_step[-1]
+        returns[-1] = last
+        # Y_t = r_t + g m_t Qbar_{t+1} + g lam c_t (Y_{t+1} - Qbar_{t+1}), vectorised over envs
+        for step in range(self.size - 2, -1, -1):
+            last = one_step[step] + gamma_lam * cont[step] * (last - next_values[step])
+            returns[step] = last
+
+        horizon = self.gae_horizon
+        if horizon is not None and horizon < self.size:
+            # Cut after `horizon` terms: Y^h_t = Y_t - (g lam)^h C_{t,h} (Y_{t+h} - Qbar_{t+h}),
+            # where C_{t,h} = 1 when the trace is not cut between t and t+h
+            cuts = th.cumsum((~cont).int(), dim=0)
+            cuts_before = th.cat([th.zeros_like(cuts[:1]), cuts[:-1]])
+            no_cut = cuts[horizon - 1 : self.size - 1] == cuts_before[: self.size - horizon]
+            tail = returns[horizon:] - next_values[horizon - 1 : self.size - 1]
+            returns[: self.size - horizon] -= gamma_lam**horizon * no_cut * tail
+        self.returns[order] = returns
+
+    def sample(self, batch_size: int) -> CGACSamples:
+        """
+        Sample transitions uniformly (with replacement) from the window.
+
+        :param batch_size: Number of transitions
+        :return: Observations, actions, Q-GAE targets and weights (0 for excluded transitions)
+        """
+        idx = th.randint(0, self.n_transitions, (batch_size,), device=self.device)
+        return CGACSamples(
+            observations=_index_obs(_flatten_obs(self.observations, 2), idx),
+            actions=self.actions.view(-1, self.action_dim)[idx],
+            returns=self.returns.view(-1)[idx],
+            weights=self.weights.view(-1)[idx],
+        )
+
+    def nbytes(self) -> int:
+        """Memory held by the buffer, terminal observations included."""
+        tensors = [self.actions, self.next_actions, self.rewards, self.terminated, self.truncated]
+        tensors += [self.obs_ok, self.reward_ok, self.next_values, self.returns, self.weights, self.current_obs_ok]
+        total = _nbytes(self.observations) + _nbytes(self.current_obs) + sum(_nbytes(t) for t in tensors)
+        return total + sum(_nbytes(t.observations) for t in self.terminal_observations if t is not None)
+
+    def raw_transition_nbytes(self) -> int:
+        """Bytes of the transitions themselves: observation, action, next action, reward and two flags each."""
+        per_step = _nbytes(_index_obs(self.observations, 0)) + 2 * _nbytes(self.actions[0])
+        per_step += _nbytes(self.rewards[0]) + _nbytes(self.terminated[0]) + _nbytes(self.truncated[0])
+        return per_step * self.buffer_window

@@ -1,0 +1,635 @@
+import warnings
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor, polyak_update, update_learning_rate
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, TensorObs, TerminalObservations, sanitize_observations
+from sb3_cgac.callbacks import EntropyScheduleCallback, ProgressEntropySchedule, RewardEntropySchedule
+from sb3_cgac.policies import Actor, CGACPolicy, MlpPolicy, MultiInputPolicy
+
+SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
+
+CRITIC_LOSSES = ("huber", "mse")
+ENTROPY_SCHEDULES: dict[str, type[EntropyScheduleCallback]] = {
+    "reward": RewardEntropySchedule,
+    "progress": ProgressEntropySchedule,
+}
+# The paper's minibatch size, used when the window holds that many transitions
+PAPER_BATCH_SIZE = 4096
+# Fewer parallel envs than this gives CGAC too little state diversity (paper Sec. 4.2 and Fig. 3a-b)
+FEW_ENVS = 16
+
+
+class CGAC(OnPolicyAlgorithm):
+    """
+    Critic-Gradient-based Actor-Critic (CGAC), an on-policy actor-critic for massively parallel simulators.
+    Paper: "Practical Critic Gradient based Actor Critic for On-Policy Reinforcement Learning",
+    Gurumurthy, Manchester and Kolter, L4DC 2023.
+
+    Each iteration collects ``n_steps`` steps of every env with the *averaged actor* into a window of the last
+    ``buffer_window`` steps, computes Q-GAE(lambda) targets from the *target critic* (Eq. 9-10), then runs
+    ``critic_updates_per_step`` critic updates per collected step on uniform minibatches of the window, with an
+    actor and entropy-coefficient update (SAC-style, Eq. 7 and 12) every ``policy_delay`` critic updates,
+    each followed by the Polyak updates of both averaged copies.
+    The defaults are the paper's schedule: one new step per iteration, a 32-step window, two critic updates
+    and one actor update per step. ``n_steps == buffer_window`` gives a PPO-like schedule instead
+    (a fresh buffer every rollout).
+
+    :param policy: The policy model to use (MlpPolicy, MultiInputPolicy)
+    :param env: The environment to learn from (if registered in Gym, can be str). Use many parallel envs.
+    :param learning_rate: Learning rate of the actor (Adam), constant or a function of the progress
+        remaining (from 1 to 0); also of the critic and entropy coefficient unless given separately
+    :param critic_learning_rate: Learning rate of the critics (None: ``learning_rate``)
+    :param ent_coef_learning_rate: Learning rate of the entropy coefficient (None: 10x ``learning_rate``,
+        as in the paper's code)
+    :param n_steps: Number of new steps collected per env in each iteration
+    :param buffer_window: Number of most recent steps per env kept in the buffer (paper: 32)
+    :param batch_size: Minibatch size (None: the paper's 4096, or the whole window when it holds fewer
+        transitions). Updates start once the window holds ``batch_size`` transitions.
+    :param critic_updates_per_step: Critic updates per collected step (paper: 2)
+    :param policy_delay: One actor and entropy-coefficient update every ``policy_delay`` critic updates (paper: 2)
+    :param gamma: Discount factor
+    :param gae_lambda: lambda of the Q-GAE targets
+    :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window;
+        the paper uses 8 for SNU humanoid and AllegroHand)
+    :param tau: Polyak coefficient of the target critic (paper tau_Q: 0.005; 1 turns value averaging off)
+    :param policy_tau: Polyak coefficient of the averaged actor (paper tau_pi: 0.001; 1 turns policy averaging off)
+    :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
+        to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
+    :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12);
+        the entropy schedules change it during training
+    :param ent_coef_monotone: Clamp the learned alpha so that it never increases (paper Sec. 4.2)
+    :param entropy_schedule: Schedule of beta: ``"reward"`` (the paper's Eq. 13, see ``RewardEntropySchedule``),
+        ``"progress"`` (linear in training progress, see ``ProgressEntropySchedule``) or None (fixed beta)
+    :param entropy_schedule_kwargs: Keyword arguments of the entropy schedule callback
+    :param critic_loss: ``"huber"`` (the paper's code: squared error below 4x the batch median of
+        ``|Q - Y|``, linear above) or ``"mse"``
+    :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
+    :param actor_max_grad_norm: Gradient-norm clipping of the actor update (None: no clipping, as in the paper)
+    :param clip_actor_gradient_outliers: Clip outliers of dQ/da in the actor update, as the paper's code can:
+        when the mean over action dims of max|g| / median|g| exceeds twice its running average, each dim of
+        dQ/da is clamped to its [50th, 95th] percentile range over the batch
+    :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
+    :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
+    :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
+        the reported success rate, mean episode length, and mean reward over
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages, 2 for debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run.
+        Setting it to auto, the code will be run on the GPU if possible.
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    policy: CGACPolicy  # type: ignore[assignment]
+    rollout_buffer: CGACRolloutBuffer  # type: ignore[assignment]
+    actor: Actor
+    actor_avg: Actor
+    critic: ContinuousCritic
+    critic_target: ContinuousCritic
+
+    def __init__(
+        self,
+        policy: str | type[CGACPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 2e-3,
+        critic_learning_rate: float | Schedule | None = None,
+        ent_coef_learning_rate: float | Schedule | None = None,
+        n_steps: int = 1,
+        buffer_window: int = 32,
+        batch_size: int | None = None,
+        critic_updates_per_step: int = 2,
+        policy_delay: int = 2,
+        gamma: float = 0.99,
+        gae_lambda: float = 0.95,
+        gae_horizon: int | None = None,
+        tau: float = 0.005,
+        policy_tau: float = 0.001,
+        ent_coef: str | float = "auto_0.1",
+        target_entropy_beta: float = 1.0,
+        ent_coef_monotone: bool = True,
+        entropy_schedule: str | None = None,
+        entropy_schedule_kwargs: dict[str, Any] | None = None,
+        critic_loss: str = "huber",
+        max_grad_norm: float = 20.0,
+        actor_max_grad_norm: float | None = None,
+        clip_actor_gradient_outliers: bool = False,
+        rollout_buffer_class: type[CGACRolloutBuffer] | None = None,
+        rollout_buffer_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        if env is not None and not isinstance(env, str):
+            # Before SB3's own checks, which give less helpful messages
+            self._check_action_space(env.action_space)
+        super().__init__(
+            policy,  # type: ignore[arg-type]
+            env,
+            learning_rate=learning_rate,
+            n_steps=n_steps,
+            gamma=gamma,
+            gae_lambda=gae_lambda,
+            ent_coef=0.0,  # replaced below: CGAC's alpha may be a string
+            vf_coef=0.0,
+            max_grad_norm=max_grad_norm,
+            use_sde=False,
+            sde_sample_freq=-1,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+            _init_setup_model=False,
+        )
+        self.ent_coef = ent_coef  # type: ignore[assignment]
+        self.critic_learning_rate = critic_learning_rate
+        self.ent_coef_learning_rate = ent_coef_learning_rate
+        self.buffer_window = buffer_window
+        self.batch_size = batch_size
+        self.critic_updates_per_step = critic_updates_per_step
+        self.policy_delay = policy_delay
+        self.gae_horizon = gae_horizon
+        self.tau = tau
+        self.policy_tau = policy_tau
+        self.target_entropy_beta = target_entropy_beta
+        self.ent_coef_monotone = ent_coef_monotone
+        self.entropy_schedule = entropy_schedule
+        self.entropy_schedule_kwargs = entropy_schedule_kwargs or {}
+        self.critic_loss = critic_loss
+        self.actor_max_grad_norm = actor_max_grad_norm
+        self.clip_actor_gradient_outliers = clip_actor_gradient_outliers
+        self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
+        self.rollout_buffer_kwargs = rollout_buffer_kwargs or {}
+        self.log_ent_coef: th.Tensor | None = None
+        self.ent_coef_optimizer: th.optim.Optimizer | None = None
+        # Collection state: actions already sampled for `_last_obs`, and the `_last_obs` the buffer ends with
+        self._pending_actions: th.Tensor | None = None
+        self._rollout_obs: Any = None
+        self._entropy_schedule_callback: EntropyScheduleCallback | None = None
+
+        self._check_hyperparameters()
+        if self.env is not None:
+            self._check_action_space(self.action_space)
+        if _init_setup_model:
+            self._setup_model()
+            if self.n_envs < FEW_ENVS:
+                warnings.warn(
+                    f"CGAC is built for many parallel environments (the paper uses 4096) and learns poorly from few: "
+                    f"this model has n_envs={self.n_envs}. Use a vectorised env with more copies, e.g. "
+                    "make_vec_env(env_id, n_envs=64).",
+                    UserWarning,
+                    stacklevel=2,
+                )
+
+    def _check_hyperparameters(self) -> None:
+        # Checks that do not depend on the env; each error says what is wrong and how to fix it
+        def positive_int(name: str, value: Any) -> None:
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"CGAC: {name} must be an integer >= 1, got {value!r}.")
+
+        positive_int("n_steps", self.n_steps)
+        positive_int("buffer_window", self.buffer_window)
+        positive_int("critic_updates_per_step", self.critic_updates_per_step)
+        positive_int("policy_delay", self.policy_delay)
+        if self.batch_size is not None:
+            positive_int("batch_size", self.batch_size)
+        if self.gae_horizon is not None:
+            positive_int("gae_horizon", self.gae_horizon)
+        if self.n_steps > self.buffer_window:
+            raise ValueError(
+                f"CGAC: n_steps ({self.n_steps}) is larger than buffer_window ({self.buffer_window}): each iteration "
+                "writes n_steps new steps per env into a window of buffer_window steps. Lower n_steps or raise "
+                "buffer_window (n_steps == buffer_window gives a fresh buffer every rollout)."
+            )
+        for name, value in (("tau", self.tau), ("policy_tau", self.policy_tau)):
+            if not 0.0 < value <= 1.0:
+                raise ValueError(f"CGAC: {name} must be in (0, 1] (1 turns the averaging off), got {value}.")
+        if not 0.0 <= self.gamma <= 1.0 or not 0.0 <= self.gae_lambda <= 1.0:
+            raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {self.gamma} and {self.gae_lambda}.")
+        if self.critic_loss not in CRITIC_LOSSES:
+            raise ValueError(f"CGAC: unknown critic_loss {self.critic_loss!r}; choose one of {CRITIC_LOSSES}.")
+        if self.entropy_schedule is not None and self.entropy_schedule not in ENTROPY_SCHEDULES:
+            raise ValueError(
+                f"CGAC: unknown entropy_schedule {self.entropy_schedule!r}; choose one of {tuple(ENTROPY_SCHEDULES)} "
+                "or None for a fixed target_entropy_beta."
+            )
+        if self.entropy_schedule is None and self.entropy_schedule_kwargs:
+            raise ValueError("CGAC: entropy_schedule_kwargs is given but entropy_schedule is None; set entropy_schedule.")
+        if self.max_grad_norm is not None and self.max_grad_norm <= 0:
+            raise ValueError(f"CGAC: max_grad_norm must be > 0, got {self.max_grad_norm}.")
+        self._initial_ent_coef()
+
+    def _initial_ent_coef(self) -> tuple[bool, float]:
+        """:return: whether alpha is learned, and its initial value"""
+        if isinstance(self.ent_coef, str):
+            if self.ent_coef == "auto":
+                return True, 1.0
+            if self.ent_coef.startswith("auto_"):
+                try:
+                    init_value = float(self.ent_coef[len("auto_") :])
+                except ValueError:
+                    init_value = -1.0
+                if init_value > 0:
+                    return True, init_value
+            raise ValueError(
+                f"CGAC: malformed ent_coef {self.ent_coef!r}; use a float, 'auto', or 'auto_<init>' with init > 0 "
+                "(e.g. 'auto_0.1', the paper's initial alpha)."
+            )
+        if float(self.ent_coef) < 0:
+            raise ValueError(f"CGAC: ent_coef must be >= 0, got {self.ent_coef}.")
+        return False, float(self.ent_coef)
+
+    @staticmethod
+    def _check_action_space(action_space: spaces.Space | None) -> None:
+        if not isinstance(action_space, spaces.Box):
+            raise ValueError(
+                f"CGAC only supports continuous (Box) action spaces, got {action_space}. For discrete actions use "
+                "an algorithm such as PPO, A2C or DQN; for a discretised control problem, expose the continuous controls."
+            )
+        if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+            raise ValueError(
+                f"CGAC squashes actions with tanh into the Box bounds, but the action space {action_space} is unbounded. "
+                "Give the env finite bounds, e.g. with gymnasium.wrappers.RescaleAction or ClipAction."
+            )
+
+    def _setup_model(self) -> None:
+        self._setup_lr_schedule()
+        self.critic_lr_schedule = FloatSchedule(
+            self.learning_rate if self.critic_learning_rate is None else self.critic_learning_rate
+        )
+        self.ent_coef_lr_schedule = None if self.ent_coef_learning_rate is None else FloatSchedule(self.ent_coef_learning_rate)
+        self.set_random_seed(self.seed)
+        self._check_action_space(self.action_space)
+        self._setup_batch_size()
+
+        buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
+        self.rollout_buffer = buffer_class(
+            self.buffer_window,
+            self.observation_space,
+            self.action_space,  # type: ignore[arg-type]
+            device=self.device,
+            n_envs=self.n_envs,
+            gamma=self.gamma,
+            gae_lambda=self.gae_lambda,
+            gae_horizon=self.gae_horizon,
+            **self.rollout_buffer_kwargs,
+        )
+        self.policy = self.policy_class(  # type: ignore[assignment]
+            self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
+        )
+        self.policy = self.policy.to(self.device)
+        self._create_aliases()
+
+        learn_alpha, init_alpha = self._initial_ent_coef()
+        if learn_alpha:
+            # Optimise log(alpha), as SB3's SAC does
+            self.log_ent_coef = th.log(th.ones(1, device=self.device) * init_alpha).requires_grad_(True)
+            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=10 * self.lr_schedule(1))
+        else:
+            self.ent_coef_tensor = th.tensor(init_alpha, device=self.device)
+        # Running average of the max/median ratio of dQ/da (actor-gradient outlier clipping); the paper's code starts at 100
+        self.gradient_ratio_average = th.tensor(100.0, device=self.device)
+
+    def _setup_batch_size(self) -> None:
+        capacity = self.buffer_window * self.n_envs
+        if self.batch_size is None:
+            self._batch_size = min(PAPER_BATCH_SIZE, capacity)
+        elif self.batch_size > capacity:
+            raise ValueError(
+                f"CGAC: batch_size ({self.batch_size}) is larger than the buffer, which holds buffer_window * n_envs "
+                f"= {self.buffer_window} * {self.n_envs} = {capacity} transitions. Lower batch_size or raise "
+                "buffer_window or the number of envs (batch_size=None picks min(4096, buffer size))."
+            )
+        else:
+            self._batch_size = self.batch_size
+
+    def _create_aliases(self) -> None:
+        self.actor = self.policy.actor
+        self.actor_avg = self.policy.actor_avg
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        if self.entropy_schedule is not None:
+            callback = self._with_entropy_schedule(callback)
+        return super()._init_callback(callback, progress_bar)
+
+    def _with_entropy_schedule(self, callback: MaybeCallback) -> list[BaseCallback]:
+        # The schedule given by the `entropy_schedule` hyperparameter runs first, before the user's callbacks
+        given: list[Any] = [] if callback is None else list(callback) if isinstance(callback, list) else [callback]
+        callbacks = [cb if isinstance(cb, BaseCallback) else ConvertCallback(cb) for cb in given]
+        if any(_contains_entropy_schedule(cb) for cb in callbacks):
+            raise ValueError(
+                f"CGAC: the entropy schedule is given twice, by entropy_schedule={self.entropy_schedule!r} and by a "
+                "callback. Keep one: set entropy_schedule=None or remove the schedule callback."
+            )
+        if self._entropy_schedule_callback is None:
+            assert self.entropy_schedule is not None
+            self._entropy_schedule_callback = ENTROPY_SCHEDULES[self.entropy_schedule](**self.entropy_schedule_kwargs)
+        return [self._entropy_schedule_callback, *callbacks]
+
+    def _obs_to_tensor(self, obs: Any) -> tuple[TensorObs, np.ndarray]:
+        """Sanitize a batch of numpy observations and move it to the device (no copy on CPU)."""
+        obs, ok = sanitize_observations(obs)
+        return obs_as_tensor(obs, self.device), ok
+
+    def _start_rollout(self, buffer: CGACRolloutBuffer) -> None:
+        # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
+        # set_env, load): start a new window from `_last_obs`.
+        obs, ok = self._obs_to_tensor(self._last_obs)
+        buffer.reset()
+        buffer.set_current_obs(obs, ok)
+        with th.no_grad():
+            self._pending_actions = self.actor_avg.sample(obs, 1)[0]
+        self._rollout_obs = self._last_obs
+
+    def _terminal_observations(self, infos: list[dict[str, Any]], env_indices: np.ndarray) -> TerminalObservations:
+        terminal = [infos[idx].get("terminal_observation") for idx in env_indices]
+        if any(obs is None for obs in terminal):
+            raise ValueError(
+                "CGAC: the env reported a time-limit truncation (info['TimeLimit.truncated']) without "
+                "info['terminal_observation'], which CGAC needs to bootstrap the value target. Use an SB3 VecEnv "
+                "(DummyVecEnv, SubprocVecEnv) or one of sb3_cgac.vec_env's adapters, which provide it."
+            )
+        if isinstance(terminal[0], dict):
+            stacked: Any = {key: np.stack([obs[key] for obs in terminal]) for key in terminal[0]}
+        else:
+            stacked = np.stack(terminal)
+        obs, ok = self._obs_to_tensor(stacked)
+        return TerminalObservations(th.as_tensor(env_indices, device=self.device), obs, th.as_tensor(ok, device=self.device))
+
+    def collect_rollouts(  # type: ignore[override]
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        rollout_buffer: CGACRolloutBuffer,
+        n_rollout_steps: int,
+    ) -> bool:
+        """
+        Collect ``n_rollout_steps`` steps of every env with the averaged actor into the window, then compute
+        the value targets. One forward pass of the averaged actor per step gives both the next action of the
+        step just taken and the action of the following step.
+
+        :param env: The training environment
+        :param callback: Callback that will be called at each step (and at the beginning and end of the rollout)
+        :param rollout_buffer: Buffer to fill with rollouts
+        :param n_rollout_steps: Number of experiences to collect per environment
+        :return: True if function returned with at least `n_rollout_steps` collected,
+            False if callback terminated rollout prematurely.
+        """
+        assert self._last_obs is not None, "No previous observation was provided"
+        self.policy.set_training_mode(False)
+        if self._pending_actions is None or self._last_obs is not self._rollout_obs:
+            self._start_rollout(rollout_buffer)
+        assert self._pending_actions is not None
+        callback.on_rollout_start()
+
+        for _ in range(n_rollout_steps):
+            actions = self._pending_actions
+            new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
+            self.num_timesteps += env.num_envs
+
+            done_idx = np.flatnonzero(dones)
+            truncated = np.zeros(len(dones), dtype=bool)
+            truncated[done_idx] = [infos[idx].get("TimeLimit.truncated", False) for idx in done_idx]
+            trunc_idx = np.flatnonzero(truncated)
+
+            obs_tensor, obs_ok = self._obs_to_tensor(new_obs)
+            terminal = self._terminal_observations(infos, trunc_idx) if len(trunc_idx) > 0 else None
+            with th.no_grad():
+                # Two draws of the averaged actor at s_{t+1}: the action of the next step, and the
+                # "next action" a'_{t+1} of this transition for its value target
+                next_step_actions, next_actions = self.actor_avg.sample(obs_tensor, 2)
+                if terminal is not None:
+                    next_actions[terminal.env_indices] = self.actor_avg.sample(terminal.observations, 1)[0]
+
+            rollout_buffer.add(actions, rewards, dones & ~truncated, truncated, obs_tensor, obs_ok, next_actions, terminal)
+            self._last_obs = self._rollout_obs = new_obs  # type: ignore[assignment]
+            self._last_episode_starts = dones
+            self._pending_actions = next_step_actions
+            # Episode statistics only come with finished episodes
+            self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
+
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+
+        rollout_buffer.compute_returns(self.policy.target_q_value)
+        self.logger.record("rollout/nonfinite_transitions", rollout_buffer.n_nonfinite)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def _critic_step(self, data: CGACSamples, weight_sum: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        q_values = self.critic(data.observations, data.actions)
+        critic_loss = sum(self._critic_loss(q.squeeze(-1), data.returns, data.weights) for q in q_values) / weight_sum
+        self.critic.optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()  # type: ignore[union-attr]
+        grad_norm = th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+        self.critic.optimizer.step()
+        return critic_loss.detach(), q_values[0].detach().mean(), grad_norm  # type: ignore[union-attr]
+
+    def _critic_loss(self, q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor) -> th.Tensor:
+        """Sum over the batch of the per-sample loss of one critic (paper Eq. 8)."""
+        delta = (q_values - returns) * weights
+        if self.critic_loss == "mse":
+            return (delta**2).sum()
+        # Adaptive Huber of the paper's code: squared below 4x the batch median |delta|, linear above
+        # (continuous at the threshold), so that a few huge target errors cannot dominate the update
+        abs_delta = delta.abs()
+        threshold = 4.0 * abs_delta.detach().median()
+        linear = 2.0 * threshold * abs_delta - threshold**2
+        return th.where(abs_delta < threshold, delta**2, linear).sum()
+
+    def _clip_dq_da(self, dq_da: th.Tensor) -> th.Tensor:
+        # Outlier clipping of the paper's code, without a device sync
+        abs_grad = dq_da.abs()
+        ratio = (abs_grad.max(dim=0).values / abs_grad.median(dim=0).values.clamp_min(1e-12)).mean()
+        self.gradient_ratio_average = 0.95 * self.gradient_ratio_average + 0.05 * ratio
+        quantiles = th.quantile(dq_da, th.tensor([0.5, 0.95], device=dq_da.device), dim=0)
+        clipped = th.clamp(dq_da, min=quantiles[0], max=quantiles[1])
+        return th.where(ratio > 2.0 * self.gradient_ratio_average, clipped, dq_da)
+
+    def _actor_step(
+        self, data: CGACSamples, weight_sum: th.Tensor, target_entropy: float
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor | None]:
+        actions_pi, log_prob = self.actor.action_log_prob(data.observations)
+        ent_coef = th.exp(self.log_ent_coef.detach()) if self.log_ent_coef is not None else self.ent_coef_tensor
+
+        # Critic gradients are not needed for the actor loss (paper Eq. 7): skip their computation
+        for q_net in self.critic.q_networks:
+            q_net.requires_grad_(False)
+        min_q_pi = th.cat(self.critic(data.observations, actions_pi), dim=1).min(dim=1).values
+        if self.clip_actor_gradient_outliers:
+            q_objective = (min_q_pi * data.weights).sum() / weight_sum
+            dq_da = self._clip_dq_da(th.autograd.grad(q_objective, actions_pi, retain_graph=True)[0])
+            # Surrogate whose gradient through the actions is the clipped dQ/da
+            actor_loss = (ent_coef * log_prob * data.weights).sum() / weight_sum - (dq_da.detach() * actions_pi).sum()
+        else:
+            actor_loss = ((ent_coef * log_prob - min_q_pi) * data.weights).sum() / weight_sum
+        self.actor.optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        for q_net in self.critic.q_networks:
+            q_net.requires_grad_(True)
+        if self.actor_max_grad_norm is not None:
+            grad_norm = th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.actor_max_grad_norm)
+        else:
+            grad_norm = th.nn.utils.get_total_norm([param.grad for param in self.actor.parameters() if param.grad is not None])
+        self.actor.optimizer.step()
+
+        ent_coef_loss = None
+        if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
+            # Eq. 12: raise alpha when the entropy is below the target -beta*|A|, lower it above
+            entropy_gap = ((log_prob.detach() + target_entropy) * data.weights).sum() / weight_sum
+            ent_coef_loss = -(self.log_ent_coef * entropy_gap).sum()
+            previous = self.log_ent_coef.detach().clone()
+            self.ent_coef_optimizer.zero_grad(set_to_none=True)
+            ent_coef_loss.backward()
+            self.ent_coef_optimizer.step()
+            if self.ent_coef_monotone:
+                # alpha = min(alpha_prev, alpha_new): alpha never increases (paper Sec. 4.2)
+                with th.no_grad():
+                    th.minimum(self.log_ent_coef, previous, out=self.log_ent_coef)
+            ent_coef_loss = ent_coef_loss.detach()
+        entropy = -(log_prob.detach() * data.weights).sum() / weight_sum
+        return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
+
+    def _update_learning_rates(self) -> float:
+        progress = self._current_progress_remaining
+        self._update_learning_rate(self.actor.optimizer)
+        update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(progress))
+        self.logger.record("train/critic_learning_rate", self.critic_lr_schedule(progress))
+        if self.ent_coef_optimizer is not None:
+            lr = self.ent_coef_lr_schedule(progress) if self.ent_coef_lr_schedule else 10 * self.lr_schedule(progress)
+            update_learning_rate(self.ent_coef_optimizer, lr)
+        return progress
+
+    def train(self) -> None:
+        """Critic, actor, entropy-coefficient and Polyak updates on minibatches of the window."""
+        if self.rollout_buffer.n_transitions < self._batch_size:
+            return  # the window does not hold a minibatch yet
+        self.policy.set_training_mode(True)
+        self._update_learning_rates()
+        target_entropy = -self.target_entropy_beta * float(get_action_dim(self.action_space))
+
+        critic_stats, actor_stats = [], []
+        for _ in range(self.critic_updates_per_step * self.n_steps):
+            data = self.rollout_buffer.sample(self._batch_size)
+            weight_sum = data.weights.sum().clamp_min(1.0)
+            critic_stats.append(th.stack(self._critic_step(data, weight_sum)))
+            self._n_updates += 1
+            if self._n_updates % self.policy_delay == 0:
+                actor_loss, grad_norm, entropy, ent_coef_loss = self._actor_step(data, weight_sum, target_entropy)
+                ent_coef_loss = ent_coef_loss if ent_coef_loss is not None else th.zeros_like(actor_loss)
+                actor_stats.append(th.stack([actor_loss, grad_norm, entropy, ent_coef_loss]))
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                polyak_update(self.actor.parameters(), self.actor_avg.parameters(), self.policy_tau)
+
+        self.policy.set_training_mode(False)
+        self._check_finite_parameters()
+        critic_loss, q_mean, critic_grad_norm = th.stack(critic_stats).mean(dim=0).tolist()
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/critic_loss", critic_loss)
+        self.logger.record("train/q_mean", q_mean)
+        self.logger.record("train/critic_grad_norm", critic_grad_norm)
+        self.logger.record("train/target_entropy", target_entropy)
+        self.logger.record("train/beta", self.target_entropy_beta)
+        self.logger.record("train/ent_coef", self._current_ent_coef())
+        if isinstance(self.actor.log_std, th.nn.Parameter):
+            self.logger.record("train/std", th.exp(self.actor.log_std.detach()).mean().item())
+        if actor_stats:
+            actor_loss, actor_grad_norm, entropy, ent_coef_loss = th.stack(actor_stats).mean(dim=0).tolist()
+            self.logger.record("train/actor_loss", actor_loss)
+            self.logger.record("train/actor_grad_norm", actor_grad_norm)
+            self.logger.record("train/entropy", entropy)
+            if self.ent_coef_optimizer is not None:
+                self.logger.record("train/ent_coef_loss", ent_coef_loss)
+
+    def _current_ent_coef(self) -> float:
+        if self.log_ent_coef is not None:
+            return float(th.exp(self.log_ent_coef.detach()).item())
+        return float(self.ent_coef_tensor.item())
+
+    def _check_finite_parameters(self) -> None:
+        params: list[th.Tensor] = [*self.actor.parameters(), *self.critic.parameters()]
+        if self.log_ent_coef is not None:
+            params.append(self.log_ent_coef)
+        if not bool(th.stack([param.detach().isfinite().all() for param in params]).all()):
+            raise RuntimeError(
+                f"CGAC: network parameters became NaN/Inf after {self._n_updates} critic updates; training cannot go on. "
+                "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
+                "too high, or gradient clipping turned off (max_grad_norm)."
+            )
+
+    def learn(
+        self: SelfCGAC,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 100,
+        tb_log_name: str = "CGAC",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfCGAC:
+        """
+        Train the model (see ``BaseAlgorithm.learn``).
+
+        :param log_interval: Log every ``log_interval`` iterations (an iteration collects ``n_steps * n_envs`` steps)
+        """
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "actor",
+            "actor_avg",
+            "critic",
+            "critic_target",
+            "_pending_actions",
+            "_rollout_obs",
+            "_entropy_schedule_callback",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
+        saved_pytorch_variables = ["gradient_ratio_average"]
+        if self.ent_coef_optimizer is not None:
+            saved_pytorch_variables.append("log_ent_coef")
+            state_dicts.append("ent_coef_optimizer")
+        else:
+            saved_pytorch_variables.append("ent_coef_tensor")
+        return state_dicts, saved_pytorch_variables
+
+
+def _contains_entropy_schedule(callback: BaseCallback) -> bool:
+    if isinstance(callback, EntropyScheduleCallback):
+        return True
+    if isinstance(callback, CallbackList):
+        return any(_contains_entropy_schedule(child) for child in callback.callbacks)
+    return False

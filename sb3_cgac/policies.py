@@ -1,0 +1,382 @@
+"""Policies for CGAC: a tanh-squashed Gaussian actor, twin Q critics and their Polyak-averaged copies."""
+
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import (
+    BaseFeaturesExtractor,
+    CombinedExtractor,
+    FlattenExtractor,
+    create_mlp,
+    get_actor_critic_arch,
+)
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+# Same caps on the log standard deviation as SB3's SAC
+LOG_STD_MAX = 2
+LOG_STD_MIN = -20
+
+
+def xavier_init(module: nn.Module) -> None:
+    """Xavier-uniform weights and zero biases for every linear layer (the initialisation of the paper's code)."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.xavier_uniform_(layer.weight)
+            nn.init.zeros_(layer.bias)
+
+
+class Actor(BasePolicy):
+    """
+    Tanh-squashed diagonal Gaussian actor (paper Sec. 4.1: "the policy network outputs the mean and
+    standard deviation to parameterize a gaussian distribution").
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param net_arch: Network architecture (hidden layer sizes)
+    :param features_extractor: Network to extract features
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param log_std_init: Initial value of the log standard deviation
+    :param state_dependent_std: Whether the log standard deviation is a head of the network (as in SAC)
+        instead of a learnable state-independent vector (the paper's code)
+    :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0
+    """
+
+    action_space: spaces.Box
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: nn.Module,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ELU,
+        log_std_init: float = -1.0,
+        state_dependent_std: bool = False,
+        use_xavier_init: bool = True,
+        normalize_images: bool = True,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            normalize_images=normalize_images,
+            squash_output=True,
+        )
+        self.net_arch = net_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+        self.log_std_init = log_std_init
+        self.state_dependent_std = state_dependent_std
+        self.use_xavier_init = use_xavier_init
+
+        action_dim = get_action_dim(self.action_space)
+        self.latent_pi = nn.Sequential(*create_mlp(features_dim, -1, net_arch, activation_fn))
+        last_layer_dim = net_arch[-1] if len(net_arch) > 0 else features_dim
+        self.mu = nn.Linear(last_layer_dim, action_dim)
+        self.log_std: nn.Linear | nn.Parameter
+        if state_dependent_std:
+            self.log_std = nn.Linear(last_layer_dim, action_dim)
+        else:
+            self.log_std = nn.Parameter(th.full((action_dim,), float(log_std_init)))
+        if use_xavier_init:
+            xavier_init(self)
+        if isinstance(self.log_std, nn.Linear):
+            # Start from the requested standard deviation whatever the initial features
+            nn.init.zeros_(self.log_std.weight)
+            nn.init.constant_(self.log_std.bias, float(log_std_init))
+        self.action_dist = SquashedDiagGaussianDistribution(action_dim)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                log_std_init=self.log_std_init,
+                state_dependent_std=self.state_dependent_std,
+                use_xavier_init=self.use_xavier_init,
+                features_extractor=self.features_extractor,
+            )
+        )
+        return data
+
+    def get_action_dist_params(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param obs: Observations
+        :return: Mean and log standard deviation of the Gaussian before the tanh squashing
+        """
+        latent_pi = self.latent_pi(self.extract_features(obs, self.features_extractor))
+        mean_actions = self.mu(latent_pi)
+        log_std = self.log_std(latent_pi) if isinstance(self.log_std, nn.Linear) else self.log_std
+        return mean_actions, th.clamp(log_std, LOG_STD_MIN, LOG_STD_MAX)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        mean_actions, log_std = self.get_action_dist_params(obs)
+        return self.action_dist.actions_from_params(mean_actions, log_std, deterministic=deterministic)
+
+    def action_log_prob(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
+        """
+        Reparameterised actions and their log-likelihood, for the actor loss (paper Eq. 7).
+
+        :param obs: Observations
+        :return: Squashed actions and their log probability
+        """
+        mean_actions, log_std = self.get_action_dist_params(obs)
+        return self.action_dist.log_prob_from_params(mean_actions, log_std)
+
+    def sample(self, obs: PyTorchObs, n_samples: int) -> th.Tensor:
+        """
+        Draw several independent squashed actions per observation from one forward pass.
+        CGAC needs two per step: the action to take and the "next action" of the previous transition.
+
+        :param obs: Observations, batch size B
+        :param n_samples: Number of draws per observation
+        :return: Actions of shape (n_samples, B, action_dim)
+        """
+        mean_actions, log_std = self.get_action_dist_params(obs)
+        noise = th.randn((n_samples, *mean_actions.shape), device=mean_actions.device, dtype=mean_actions.dtype)
+        return th.tanh(mean_actions + log_std.exp() * noise)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self(observation, deterministic)
+
+
+class CGACPolicy(BasePolicy):
+    """
+    Policy class for CGAC: an actor and twin Q critics that are trained, plus a Polyak-averaged copy of
+    each (the averaged actor acts in the environment and samples next actions, the target critic gives
+    the value targets; paper Sec. 4.2, "Policy-Value Coupling"). All four live here so that
+    ``policy.save()``/``load()`` keep them.
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param lr_schedule: Learning rate schedule (the algorithm sets the actual learning rates)
+    :param net_arch: Hidden layers, the same list for actor and critics, or ``dict(pi=[...], qf=[...])``
+    :param activation_fn: Activation function (ELU in the paper)
+    :param log_std_init: Initial log standard deviation of the actor (-1 in the paper's code)
+    :param state_dependent_std: Whether the actor's log standard deviation depends on the state
+    :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
+    :param features_extractor_class: Features extractor to use
+    :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0
+    :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
+    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+    :param n_critics: Number of Q networks (the value target and the actor use their minimum, paper Eq. 11)
+    :param share_features_extractor: Whether actor and critic share the features extractor
+    """
+
+    actor: Actor
+    actor_avg: Actor
+    critic: ContinuousCritic
+    critic_target: ContinuousCritic
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.ELU,
+        log_std_init: float = -1.0,
+        state_dependent_std: bool = False,
+        use_xavier_init: bool = True,
+        features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        n_critics: int = 2,
+        share_features_extractor: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor_class,
+            features_extractor_kwargs,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            normalize_images=normalize_images,
+            squash_output=True,
+        )
+        if net_arch is None:
+            net_arch = [256, 256]
+        actor_arch, critic_arch = get_actor_critic_arch(net_arch)
+        self.net_arch = net_arch
+        self.activation_fn = activation_fn
+        self.use_xavier_init = use_xavier_init
+        self.share_features_extractor = share_features_extractor
+        net_args = {
+            "observation_space": self.observation_space,
+            "action_space": self.action_space,
+            "activation_fn": activation_fn,
+            "normalize_images": normalize_images,
+        }
+        self.actor_kwargs = {
+            **net_args,
+            "net_arch": actor_arch,
+            "log_std_init": log_std_init,
+            "state_dependent_std": state_dependent_std,
+            "use_xavier_init": use_xavier_init,
+        }
+        self.critic_kwargs = {
+            **net_args,
+            "net_arch": critic_arch,
+            "n_critics": n_critics,
+            "share_features_extractor": share_features_extractor,
+        }
+        self._build(lr_schedule)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        self.actor = self.make_actor()
+        self.actor.optimizer = self.optimizer_class(  # type: ignore[call-arg]
+            self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+        if self.share_features_extractor:
+            self.critic = self.make_critic(features_extractor=self.actor.features_extractor)
+            # The shared features extractor is trained by the actor loss only
+            critic_parameters = [param for name, param in self.critic.named_parameters() if "features_extractor" not in name]
+        else:
+            self.critic = self.make_critic(features_extractor=None)
+            critic_parameters = list(self.critic.parameters())
+        self.critic.optimizer = self.optimizer_class(  # type: ignore[call-arg]
+            critic_parameters, lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+
+        # Polyak-averaged copies, never trained by gradient and always in eval mode
+        self.actor_avg = self.make_actor()
+        self.actor_avg.load_state_dict(self.actor.state_dict())
+        self.critic_target = self.make_critic(features_extractor=None)
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        for averaged in (self.actor_avg, self.critic_target):
+            averaged.requires_grad_(False)
+            averaged.set_training_mode(False)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                activation_fn=self.activation_fn,
+                log_std_init=self.actor_kwargs["log_std_init"],
+                state_dependent_std=self.actor_kwargs["state_dependent_std"],
+                use_xavier_init=self.use_xavier_init,
+                lr_schedule=self._dummy_schedule,  # not needed to load the policy alone
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+                features_extractor_class=self.features_extractor_class,
+                features_extractor_kwargs=self.features_extractor_kwargs,
+                n_critics=self.critic_kwargs["n_critics"],
+                share_features_extractor=self.share_features_extractor,
+            )
+        )
+        return data
+
+    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
+        actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
+        return Actor(**actor_kwargs).to(self.device)
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        critic = ContinuousCritic(**critic_kwargs)
+        if self.use_xavier_init:
+            for q_net in critic.q_networks:
+                xavier_init(q_net)
+        return critic.to(self.device)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        # The averaged actor is the behaviour policy (paper Sec. 4.2): predict() acts as training rollouts do
+        return self.actor_avg(observation, deterministic)
+
+    @th.no_grad()
+    def target_q_value(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """
+        Minimum over the target critics (paper Eq. 11), used for the value targets (Eq. 9-10).
+
+        :param obs: Observations, batch size B
+        :param actions: Squashed actions, shape (B, action_dim)
+        :return: Target Q-values of shape (B,)
+        """
+        return th.cat(self.critic_target(obs, actions), dim=1).min(dim=1).values
+
+    def set_training_mode(self, mode: bool) -> None:
+        """
+        Put the trained networks in training or evaluation mode (the averaged copies stay in evaluation mode).
+
+        :param mode: if true, set to training mode, else set to evaluation mode
+        """
+        self.actor.set_training_mode(mode)
+        self.critic.set_training_mode(mode)
+        self.training = mode
+
+
+MlpPolicy = CGACPolicy
+
+
+class MultiInputPolicy(CGACPolicy):
+    """
+    Policy class for CGAC with Dict observations (a ``CombinedExtractor`` by default).
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param lr_schedule: Learning rate schedule (the algorithm sets the actual learning rates)
+    :param net_arch: Hidden layers, the same list for actor and critics, or ``dict(pi=[...], qf=[...])``
+    :param activation_fn: Activation function (ELU in the paper)
+    :param log_std_init: Initial log standard deviation of the actor (-1 in the paper's code)
+    :param state_dependent_std: Whether the actor's log standard deviation depends on the state
+    :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
+    :param features_extractor_class: Features extractor to use
+    :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0
+    :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
+    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+    :param n_critics: Number of Q networks
+    :param share_features_extractor: Whether actor and critic share the features extractor
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.ELU,
+        log_std_init: float = -1.0,
+        state_dependent_std: bool = False,
+        use_xavier_init: bool = True,
+        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        n_critics: int = 2,
+        share_features_extractor: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch,
+            activation_fn,
+            log_std_init,
+            state_dependent_std,
+            use_xavier_init,
+            features_extractor_class,
+            features_extractor_kwargs,
+            normalize_images,
+            optimizer_class,
+            optimizer_kwargs,
+            n_critics,
+            share_features_extractor,
+        )

@@ -1,0 +1,152 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
+from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
+
+SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
+
+
+class ConstantRewardEnv(gym.Env):
+    observation_space = spaces.Box(-1, 1, (2,), np.float32)
+    action_space = spaces.Box(-1, 1, (2,), np.float32)
+
+    def __init__(self, reward: float = 4.5):
+        super().__init__()
+        self.reward = reward
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.steps = 0
+        return self.np_random.uniform(-1, 1, 2).astype(np.float32), {}
+
+    def step(self, action):
+        self.steps += 1
+        return self.np_random.uniform(-1, 1, 2).astype(np.float32), self.reward, False, self.steps >= 50, {}
+
+
+class RecordAlpha(BaseCallback):
+    def __init__(self):
+        super().__init__()
+        self.alphas: list[float] = []
+        self.betas: list[tuple[int, float]] = []
+
+    def _on_step(self) -> bool:
+        self.alphas.append(th.exp(self.model.log_ent_coef).item())
+        self.betas.append((self.num_timesteps, self.model.target_entropy_beta))
+        return True
+
+
+@pytest.mark.parametrize("monotone", [True, False])
+def test_alpha_monotone_clamp(monotone):
+    # A target entropy far above what the policy has makes SAC-style tuning raise alpha
+    model = CGAC(
+        "MlpPolicy",
+        make_vec_env(ConstantRewardEnv, n_envs=8, seed=0),
+        ent_coef="auto_0.1",
+        target_entropy_beta=-5.0,
+        ent_coef_monotone=monotone,
+        **SMALL,
+    )
+    record = RecordAlpha()
+    model.learn(1200, callback=record)
+    alphas = np.array(record.alphas)
+    if monotone:
+        assert np.all(np.diff(alphas) <= 0)
+        assert alphas.max() <= 0.1 + 1e-7
+    else:
+        assert alphas[-1] > 0.1
+
+
+def test_alpha_decreases_when_entropy_is_above_target():
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), target_entropy_beta=5.0, **SMALL)
+    model.learn(1200)
+    assert model._current_ent_coef() < 0.1 * 0.9
+
+
+@pytest.mark.parametrize("reward, expected_beta", [(0.0, 0.2), (4.5, 1.85), (20.0, 3.5)])
+def test_reward_schedule(reward, expected_beta):
+    """Eq. 13: beta = beta_init + (beta_final - beta_init) * (r_avg - r_init) / (r_peak - r_init), clipped."""
+    schedule = RewardEntropySchedule(beta_init=0.2, beta_final=3.5, init_expected_reward=1.5, peak_expected_reward=7.5)
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=4, seed=0, env_kwargs=dict(reward=reward)), **SMALL)
+    model.learn(800, callback=schedule)  # 200 steps: the EMA (0.95) has converged
+    assert schedule.reward_average == pytest.approx(reward, abs=1e-3)
+    assert model.target_entropy_beta == pytest.approx(expected_beta, abs=1e-3)
+
+
+def test_reward_schedule_from_hyperparameter():
+    model = CGAC(
+        "MlpPolicy",
+        make_vec_env(ConstantRewardEnv, n_envs=4, seed=0, env_kwargs=dict(reward=3.0)),
+        entropy_schedule="reward",
+        entropy_schedule_kwargs=dict(beta_init=0.5, beta_final=2.5, init_expected_reward=2.0, peak_expected_reward=4.0),
+        **SMALL,
+    )
+    model.learn(800)
+    assert model.target_entropy_beta == pytest.approx(1.5, abs=1e-3)
+
+
+def test_progress_schedule():
+    schedule = ProgressEntropySchedule(beta_init=0.2, beta_final=3.5, end_fraction=0.5)
+    record = RecordAlpha()
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=4, seed=0), **SMALL)
+    model.learn(800, callback=[schedule, record])
+    steps, betas = np.array(record.betas).T
+    assert np.all(np.diff(betas) >= 0)
+    assert betas[0] == pytest.approx(0.2 + 3.3 * 4 / 400, abs=1e-6)
+    mid = np.searchsorted(steps, 200)
+    assert betas[mid] == pytest.approx(0.2 + 3.3 * 0.5, abs=1e-6)
+    assert betas[-1] == pytest.approx(3.5)
+    assert np.all(betas[steps >= 400] == pytest.approx(3.5))
+
+
+def test_progress_schedule_from_hyperparameter_sets_target_entropy():
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=4, seed=0), entropy_schedule="progress", **SMALL)
+    model.learn(400)
+    assert model.target_entropy_beta == pytest.approx(3.5)
+    # The next update targets -beta * |A|
+    model.train()
+    assert model.logger.name_to_value["train/target_entropy"] == pytest.approx(-3.5 * 2)
+
+
+def snapshot(module: th.nn.Module) -> list[th.Tensor]:
+    return [p.detach().clone() for p in module.parameters()]
+
+
+@pytest.mark.parametrize("tau, policy_tau", [(0.005, 0.001), (0.3, 0.5), (1.0, 1.0)])
+def test_polyak_updates(tau, policy_tau):
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), tau=tau, policy_tau=policy_tau, **SMALL)
+    model.learn(400)
+    target_before, avg_before = snapshot(model.critic_target), snapshot(model.actor_avg)
+    n_updates = model._n_updates
+    model.train()  # 2 critic updates, then 1 actor update and the Polyak updates
+    assert model._n_updates == n_updates + 2
+    for before, critic, target in zip(target_before, model.critic.parameters(), model.critic_target.parameters(), strict=True):
+        assert th.allclose(target, (1 - tau) * before + tau * critic, atol=1e-6)
+    for before, actor, avg in zip(avg_before, model.actor.parameters(), model.actor_avg.parameters(), strict=True):
+        assert th.allclose(avg, (1 - policy_tau) * before + policy_tau * actor, atol=1e-6)
+    if tau == 1.0:
+        assert all(th.equal(a, b) for a, b in zip(model.critic.parameters(), model.critic_target.parameters(), strict=True))
+
+
+def test_rollouts_act_with_the_averaged_actor():
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=4, seed=0), **SMALL)
+    with th.no_grad():
+        # Near-deterministic actors with different means: 0 for the trained actor, tanh(0.5) for the averaged one
+        for actor, bias in ((model.actor, 0.0), (model.actor_avg, 0.5)):
+            actor.mu.weight.zero_()
+            actor.mu.bias.fill_(bias)
+            actor.log_std.fill_(-15.0)
+    model.learn(40)  # 10 steps: the window does not hold a minibatch yet, nothing is trained
+    assert model._n_updates == 0
+    stored = model.rollout_buffer.actions[: model.rollout_buffer.size]
+    assert th.allclose(stored, th.full_like(stored, np.tanh(0.5)), atol=1e-4)
+    next_actions = model.rollout_buffer.next_actions[: model.rollout_buffer.size]
+    assert th.allclose(next_actions, th.full_like(next_actions, np.tanh(0.5)), atol=1e-4)
+    action, _ = model.predict(np.zeros((1, 2), np.float32), deterministic=True)
+    assert action == pytest.approx(np.tanh(0.5), abs=1e-5)

@@ -1,0 +1,223 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.env_checker import check_env
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
+from sb3_cgac.buffers import CGACRolloutBuffer, TerminalObservations
+
+GAMMA, LAMBDA = 0.9, 0.8
+OBS_SPACE = spaces.Box(-np.inf, np.inf, (1,), np.float32)
+ACTION_SPACE = spaces.Box(-1, 1, (1,), np.float32)
+
+
+def fake_target_q(obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
+    # Qbar(s, a) = s + a: every value of the example is known by hand
+    return obs[:, 0] + actions[:, 0]
+
+
+def literal_q_gae(rewards, next_values, terminated, truncated, valid, horizon=None):
+    """
+    Eq. 9-10 written as the literal sum, one env: Y_t = sum_k (g lam)^k delta_{t+k} with
+    delta_t = r_t + g m_t Qbar_{t+1} (first term) and delta_{t+k} = r_{t+k} + g m Qbar_{t+k+1} - Qbar_{t+k},
+    cut at episode ends, at an excluded next transition, at the window end and after `horizon` terms.
+    """
+    size = len(rewards)
+    targets = []
+    for t in range(size):
+        total, k = 0.0, 0
+        while True:
+            j = t + k
+            delta = rewards[j] + GAMMA * (not terminated[j]) * next_values[j]
+            if k > 0:
+                delta -= next_values[j - 1]
+            total += (GAMMA * LAMBDA) ** k * delta
+            k += 1
+            ended = terminated[j] or truncated[j] or j + 1 >= size or not valid[j + 1]
+            if ended or (horizon is not None and k >= horizon):
+                break
+        targets.append(total)
+    return np.array(targets)
+
+
+def fill_buffer(buffer, steps, terminal_value=None):
+    """Add steps of a single env: (obs, action, reward, terminated, truncated, next_action)."""
+    buffer.set_current_obs(th.tensor([[steps[0][0]]], dtype=th.float32), np.array([True]))
+    for i, (_, action, reward, terminated, truncated, next_action) in enumerate(steps):
+        next_obs = steps[i + 1][0] if i + 1 < len(steps) else 100.0
+        terminal = None
+        if truncated:
+            terminal = TerminalObservations(th.tensor([0]), th.tensor([[terminal_value]], dtype=th.float32), th.tensor([True]))
+        buffer.add(
+            th.tensor([[action]]),
+            np.array([reward]),
+            np.array([terminated]),
+            np.array([truncated]),
+            th.tensor([[next_obs]], dtype=th.float32),
+            np.array([True]),
+            th.tensor([[next_action]]),
+            terminal,
+        )
+
+
+# (obs, action, reward, terminated, truncated, next_action); the next observation is the following row's obs
+STEPS = [
+    (0.0, 0.1, 1.0, False, False, 0.5),
+    (1.0, 0.2, 2.0, False, False, 0.25),
+    (2.0, 0.3, -1.0, True, False, 0.0),  # termination: no bootstrap
+    (10.0, 0.4, 0.5, False, False, 0.125),  # after reset
+    (11.0, 0.5, 1.5, False, True, 0.75),  # time limit: bootstrap from the terminal obs (7.0)
+    (20.0, 0.6, 3.0, False, False, 0.0),
+    (21.0, 0.7, 1.0, False, False, 0.5),  # newest: next obs is the current obs (100.0)
+]
+# Qbar_{t+1} = next obs + next action, by hand
+EXPECTED_NEXT_VALUES = [1.5, 2.25, 10.0, 11.125, 7.75, 21.0, 100.5]
+
+
+def test_next_values_and_targets():
+    buffer = CGACRolloutBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", gamma=GAMMA, gae_lambda=LAMBDA)
+    fill_buffer(buffer, STEPS, terminal_value=7.0)
+    buffer.compute_returns(fake_target_q)
+    size = len(STEPS)
+    assert np.allclose(buffer.next_values[:size, 0].numpy(), EXPECTED_NEXT_VALUES)
+
+    rewards = [s[2] for s in STEPS]
+    terminated = [s[3] for s in STEPS]
+    truncated = [s[4] for s in STEPS]
+    expected = literal_q_gae(rewards, EXPECTED_NEXT_VALUES, terminated, truncated, [True] * size)
+    assert np.allclose(buffer.returns[:size, 0].numpy(), expected, atol=1e-5)
+    # Spot checks of the hand computation
+    assert buffer.returns[2, 0].item() == pytest.approx(-1.0)  # terminal: reward only
+    assert buffer.returns[4, 0].item() == pytest.approx(1.5 + GAMMA * 7.75)  # truncation: one-step bootstrap
+    assert buffer.returns[6, 0].item() == pytest.approx(1.0 + GAMMA * 100.5)  # newest: cut at the window end
+    y5 = 3.0 + GAMMA * 21.0 + GAMMA * LAMBDA * (1.0 + GAMMA * 100.5 - 21.0)
+    assert buffer.returns[5, 0].item() == pytest.approx(y5)
+    assert buffer.weights[:size].eq(1).all()
+
+
+@pytest.mark.parametrize("horizon", [1, 2, 3])
+def test_horizon_cut(horizon):
+    buffer = CGACRolloutBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", gamma=GAMMA, gae_lambda=LAMBDA, gae_horizon=horizon)
+    # A long episode so that the horizon, not the episode end, cuts the sums
+    steps = [(float(i), 0.0, float(i % 3) - 0.5, False, False, 0.1 * i) for i in range(8)]
+    fill_buffer(buffer, steps)
+    buffer.compute_returns(fake_target_q)
+    next_values = [steps[i + 1][0] + steps[i][5] if i + 1 < 8 else 100.0 + steps[i][5] for i in range(8)]
+    expected = literal_q_gae([s[2] for s in steps], next_values, [False] * 8, [False] * 8, [True] * 8, horizon)
+    assert np.allclose(buffer.returns[:, 0].numpy(), expected, atol=1e-5)
+    if horizon == 1:
+        assert np.allclose(buffer.returns[:, 0].numpy(), np.array([s[2] for s in steps]) + GAMMA * np.array(next_values))
+
+
+def test_ring_wraps_and_computes_only_new_values():
+    window = 4
+    buffer = CGACRolloutBuffer(window, OBS_SPACE, ACTION_SPACE, device="cpu", gamma=GAMMA, gae_lambda=LAMBDA)
+    steps = [(float(i), 0.0, 1.0 + i, False, False, 0.0) for i in range(7)]
+    calls = []
+
+    def counting_q(obs, actions):
+        calls.append(len(obs))
+        return fake_target_q(obs, actions)
+
+    fill_buffer(buffer, steps[:3])
+    buffer.compute_returns(counting_q)
+    buffer.set_current_obs(th.tensor([[3.0]]), np.array([True]))
+    for i in range(3, 7):
+        next_obs = steps[i + 1][0] if i + 1 < 7 else 100.0
+        buffer.add(
+            th.zeros(1, 1),
+            np.array([steps[i][2]]),
+            np.array([False]),
+            np.array([False]),
+            th.tensor([[next_obs]]),
+            np.array([True]),
+            th.zeros(1, 1),
+        )
+    buffer.compute_returns(counting_q)
+    assert calls == [3, 4]  # Qbar is evaluated once per step
+    assert buffer.size == window and buffer.pos == 7 % window
+    # Chronological order of the window: steps 3..6
+    order = [(buffer.pos + k) % window for k in range(window)]
+    window_rewards = [s[2] for s in steps[3:]]
+    next_values = [4.0, 5.0, 6.0, 100.0]
+    expected = literal_q_gae(window_rewards, next_values, [False] * 4, [False] * 4, [True] * 4)
+    assert np.allclose(buffer.returns[order, 0].numpy(), expected, atol=1e-5)
+
+
+def test_nonfinite_transitions_are_excluded():
+    buffer = CGACRolloutBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", gamma=GAMMA, gae_lambda=LAMBDA)
+    buffer.set_current_obs(th.zeros(1, 1), np.array([True]))
+    obs_ok = [False, True, True, True, True]  # the observation reached by step 0 was NaN (sanitized to 0)
+    rewards = [1.0, 1.0, np.nan, 1.0, 1.0]
+    for i in range(5):
+        buffer.add(
+            th.zeros(1, 1),
+            np.array([rewards[i]]),
+            np.array([False]),
+            np.array([False]),
+            th.zeros(1, 1),
+            np.array([obs_ok[i]]),
+            th.zeros(1, 1),
+        )
+    buffer.compute_returns(fake_target_q)
+    # step 0: bad next obs; step 1: bad obs; step 2: bad reward; steps 3-4 fine
+    assert buffer.weights[:5, 0].tolist() == [0.0, 0.0, 0.0, 1.0, 1.0]
+    assert buffer.n_nonfinite == 2
+    assert th.isfinite(buffer.returns[:5]).all()
+    # The trace of a valid step never runs into an excluded one
+    assert buffer.returns[3, 0].item() == pytest.approx(
+        literal_q_gae([1.0, 1.0], [0.0, 0.0], [False] * 2, [False] * 2, [True] * 2)[0]
+    )
+
+
+class InfiniteHorizonEnv(gym.Env):
+    """Constant observation, reward 1 forever, but episodes are cut by a time limit (like SB3's test_gae)."""
+
+    observation_space = spaces.Box(-1, 1, (2,), np.float32)
+    action_space = spaces.Box(-1, 1, (1,), np.float32)
+
+    def __init__(self, n_steps: int = 4):
+        super().__init__()
+        self.n_steps = n_steps
+        self.current_step = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.current_step = 0
+        return np.zeros(2, dtype=np.float32), {}
+
+    def step(self, action):
+        self.current_step += 1
+        return np.zeros(2, dtype=np.float32), 1.0, False, self.current_step >= self.n_steps, {}
+
+
+def test_infinite_horizon_env_is_valid():
+    check_env(InfiniteHorizonEnv())
+
+
+def test_timeout_bootstrap_infinite_horizon():
+    """With truncations bootstrapped, Q tends to 1 / (1 - gamma) = 10; treated as terminations it would stay near 3.4."""
+    gamma = 0.9
+    env = make_vec_env(InfiniteHorizonEnv, n_envs=16, seed=0)
+    model = CGAC(
+        "MlpPolicy",
+        env,
+        gamma=gamma,
+        learning_rate=3e-3,
+        tau=0.1,
+        n_steps=4,
+        buffer_window=8,
+        critic_updates_per_step=4,
+        critic_loss="mse",
+        policy_kwargs=dict(net_arch=[32, 32]),
+        seed=0,
+    )
+    model.learn(6000)
+    obs = th.zeros(8, 2)
+    actions = th.linspace(-0.9, 0.9, 8).reshape(-1, 1)
+    with th.no_grad():
+        q_values = th.cat(model.critic(obs, actions), dim=1)
+    assert q_values.mean().item() == pytest.approx(1 / (1 - gamma), rel=0.1)

@@ -1,0 +1,29 @@
+"""The README's set-up commands are the ones CI runs."""
+
+import pathlib
+import re
+
+ROOT = pathlib.Path(__file__).parents[1]
+
+
+def readme_commands() -> list[str]:
+    return re.findall(r"```bash\n(.*?)\n```", (ROOT / "README.md").read_text(), flags=re.DOTALL)
+
+
+def test_readme_starts_with_the_two_setup_commands():
+    text = (ROOT / "README.md").read_text()
+    commands = readme_commands()
+    first_block = text.index("```")
+    assert text[:first_block].count("\n") < 6, "the set-up commands must come first"
+    train, test = commands[0], commands[1]
+    for command in (train, test):
+        assert "pip install torch==2.13.0" in command and command.startswith("python3 -m venv")
+    script = re.search(r"python (\S+\.py)", train)
+    assert script is not None and (ROOT / script.group(1)).exists()
+
+
+def test_ci_runs_the_readme_test_command():
+    ci = (ROOT / ".ci" / "run").read_text()
+    match = re.search(r"^TEST_COMMAND='(.*)'$", ci, flags=re.MULTILINE)
+    assert match is not None
+    assert match.group(1) == readme_commands()[1]

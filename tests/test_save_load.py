@@ -1,0 +1,111 @@
+import io
+import pathlib
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
+from sb3_cgac.policies import CGACPolicy
+
+SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
+
+
+def make_env(n_envs: int = 4):
+    return make_vec_env("Pendulum-v1", n_envs=n_envs, seed=0)
+
+
+def state_of(model: CGAC) -> dict[str, th.Tensor]:
+    params = {f"policy.{name}": value.clone() for name, value in model.policy.state_dict().items()}
+    if model.log_ent_coef is not None:
+        params["log_ent_coef"] = model.log_ent_coef.detach().clone()
+    return params
+
+
+@pytest.mark.parametrize("ent_coef", ["auto_0.1", 0.05])
+def test_save_load(tmp_path: pathlib.Path, ent_coef):
+    env = make_env()
+    model = CGAC("MlpPolicy", env, ent_coef=ent_coef, policy_tau=0.1, **SMALL)
+    model.learn(600)
+    # Averaged copies differ from the trained networks, so that a mix-up would show
+    assert not th.allclose(model.actor.mu.weight, model.actor_avg.mu.weight)
+    assert not th.allclose(model.critic.qf0[0].weight, model.critic_target.qf0[0].weight)
+
+    obs = env.reset()
+    before = state_of(model)
+    action_before, _ = model.predict(obs, deterministic=True)
+    model.save(tmp_path / "cgac")
+    del model
+
+    loaded = CGAC.load(tmp_path / "cgac", env=env)
+    after = state_of(loaded)
+    assert before.keys() == after.keys()
+    for key in before:
+        assert th.equal(before[key], after[key]), key
+    assert any(key.startswith("policy.actor_avg.") for key in after)
+    assert any(key.startswith("policy.critic_target.") for key in after)
+    action_after, _ = loaded.predict(obs, deterministic=True)
+    assert np.array_equal(action_before, action_after)
+    # Optimizer states came back (Adam has moments after training)
+    assert len(loaded.actor.optimizer.state) > 0 and len(loaded.critic.optimizer.state) > 0
+    if ent_coef == "auto_0.1":
+        assert loaded.ent_coef_optimizer is not None and len(loaded.ent_coef_optimizer.state) > 0
+    # Training goes on
+    loaded.learn(200, reset_num_timesteps=False)
+    assert loaded.num_timesteps >= 800
+
+
+def test_save_load_buffer_like_file_objects():
+    model = CGAC("MlpPolicy", make_env(), **SMALL)
+    model.learn(200)
+    buffer = io.BytesIO()
+    model.save(buffer)
+    buffer.seek(0)
+    loaded = CGAC.load(buffer, device="cpu")
+    assert loaded.env is None
+    obs = np.zeros((1, 3), dtype=np.float32)
+    assert np.array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+
+
+def test_optimizer_state_continues_after_load(tmp_path):
+    """The optimizers are restored, not re-created: Adam's step counts go on from the saved ones."""
+    env = make_env()
+    model = CGAC("MlpPolicy", env, **SMALL)
+    model.learn(300)
+    steps = {name: _adam_steps(optimizer) for name, optimizer in _optimizers(model).items()}
+    model.save(tmp_path / "mid")
+    loaded = CGAC.load(tmp_path / "mid", env=env)
+    assert {name: _adam_steps(optimizer) for name, optimizer in _optimizers(loaded).items()} == steps
+    loaded.learn(200, reset_num_timesteps=False)  # the window refills first (32 steps) after a load
+    for name, optimizer in _optimizers(loaded).items():
+        assert _adam_steps(optimizer) > steps[name], name
+
+
+def _optimizers(model: CGAC) -> dict[str, th.optim.Optimizer]:
+    assert model.ent_coef_optimizer is not None
+    return {"actor": model.actor.optimizer, "critic": model.critic.optimizer, "ent_coef": model.ent_coef_optimizer}
+
+
+def _adam_steps(optimizer: th.optim.Optimizer) -> float:
+    return max(float(state["step"]) for state in optimizer.state.values())
+
+
+def test_set_env():
+    model = CGAC("MlpPolicy", make_env(), **SMALL)
+    model.learn(100)
+    model.set_env(make_env())
+    model.learn(100)
+    with pytest.raises(AssertionError, match="number of environments"):
+        model.set_env(make_env(2))
+
+
+def test_policy_save_load(tmp_path):
+    model = CGAC("MlpPolicy", make_env(), policy_tau=0.1, **SMALL)
+    model.learn(400)
+    model.policy.save(tmp_path / "policy.pkl")
+    policy = CGACPolicy.load(tmp_path / "policy.pkl")
+    for name, value in model.policy.state_dict().items():
+        assert th.equal(value, policy.state_dict()[name]), name
+    obs = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
+    assert np.array_equal(model.policy.predict(obs, deterministic=True)[0], policy.predict(obs, deterministic=True)[0])
