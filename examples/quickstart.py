@@ -9,10 +9,10 @@ About a minute and a half on 2 CPU cores; the mean evaluation return should end 
 
 import argparse
 
+from sb3_cgac import CGAC
+
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-
-from sb3_cgac import CGAC
 
 
 def main() -> None:

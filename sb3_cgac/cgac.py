@@ -1,6 +1,10 @@
 import warnings
 from typing import Any, ClassVar, TypeVar
 
+from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, TensorObs, TerminalObservations, sanitize_observations
+from sb3_cgac.callbacks import EntropyScheduleCallback, ProgressEntropySchedule, RewardEntropySchedule
+from sb3_cgac.policies import Actor, CGACPolicy, MlpPolicy, MultiInputPolicy
+
 import numpy as np
 import torch as th
 from gymnasium import spaces
@@ -11,10 +15,6 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor, polyak_update, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnv
-
-from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, TensorObs, TerminalObservations, sanitize_observations
-from sb3_cgac.callbacks import EntropyScheduleCallback, ProgressEntropySchedule, RewardEntropySchedule
-from sb3_cgac.policies import Actor, CGACPolicy, MlpPolicy, MultiInputPolicy
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
 
@@ -359,7 +359,7 @@ class CGAC(OnPolicyAlgorithm):
         obs, ok = self._obs_to_tensor(self._last_obs)
         buffer.reset()
         buffer.set_current_obs(obs, ok)
-        with th.no_grad():
+        with th.inference_mode():
             self._pending_actions = self.actor_avg.sample(obs, 1)[0]
         self._rollout_obs = self._last_obs
 
@@ -386,9 +386,10 @@ class CGAC(OnPolicyAlgorithm):
         n_rollout_steps: int,
     ) -> bool:
         """
-        Collect ``n_rollout_steps`` steps of every env with the averaged actor into the window, then compute
-        the value targets. One forward pass of the averaged actor per step gives both the next action of the
-        step just taken and the action of the following step.
+        Collect ``n_rollout_steps`` steps of every env with the averaged actor into the window (the value targets
+        are computed at the start of ``train()``). One forward pass of the averaged actor per step gives both the
+        next action of the step just taken and the action of the following step; the first action of a rollout
+        was drawn at the end of the previous one, before the update in between.
 
         :param env: The training environment
         :param callback: Callback that will be called at each step (and at the beginning and end of the rollout)
@@ -398,7 +399,8 @@ class CGAC(OnPolicyAlgorithm):
             False if callback terminated rollout prematurely.
         """
         assert self._last_obs is not None, "No previous observation was provided"
-        self.policy.set_training_mode(False)
+        if self.policy.training:
+            self.policy.set_training_mode(False)
         if self._pending_actions is None or self._last_obs is not self._rollout_obs:
             self._start_rollout(rollout_buffer)
         assert self._pending_actions is not None
@@ -416,7 +418,7 @@ class CGAC(OnPolicyAlgorithm):
 
             obs_tensor, obs_ok = self._obs_to_tensor(new_obs)
             terminal = self._terminal_observations(infos, trunc_idx) if len(trunc_idx) > 0 else None
-            with th.no_grad():
+            with th.inference_mode():
                 # Two draws of the averaged actor at s_{t+1}: the action of the next step, and the
                 # "next action" a'_{t+1} of this transition for its value target
                 next_step_actions, next_actions = self.actor_avg.sample(obs_tensor, 2)
@@ -434,7 +436,6 @@ class CGAC(OnPolicyAlgorithm):
             if not callback.on_step():
                 return False
 
-        rollout_buffer.compute_returns(self.policy.target_q_value)
         self.logger.record("rollout/nonfinite_transitions", rollout_buffer.n_nonfinite)
         callback.update_locals(locals())
         callback.on_rollout_end()
@@ -525,7 +526,8 @@ class CGAC(OnPolicyAlgorithm):
         return progress
 
     def train(self) -> None:
-        """Critic, actor, entropy-coefficient and Polyak updates on minibatches of the window."""
+        """Value targets of the new steps, then critic, actor, entropy-coefficient and Polyak updates on minibatches."""
+        self.rollout_buffer.compute_returns(self.policy.target_q_value)
         if self.rollout_buffer.n_transitions < self._batch_size:
             return  # the window does not hold a minibatch yet
         self.policy.set_training_mode(True)

@@ -1,3 +1,6 @@
+from sb3_cgac import CGAC
+from sb3_cgac.callbacks import ProgressEntropySchedule
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -7,9 +10,6 @@ from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnvWrapper
-
-from sb3_cgac import CGAC
-from sb3_cgac.callbacks import ProgressEntropySchedule
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16]), seed=0)
 

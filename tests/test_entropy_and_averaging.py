@@ -1,3 +1,6 @@
+from sb3_cgac import CGAC
+from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -5,9 +8,6 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-
-from sb3_cgac import CGAC
-from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 

@@ -2,13 +2,13 @@
 
 import pathlib
 
+from sb3_cgac import CGAC
+
 import pytest
 import torch as th
 import yaml
 from stable_baselines3.common.callbacks import EvalCallback, StopTrainingOnRewardThreshold
 from stable_baselines3.common.env_util import make_vec_env
-
-from sb3_cgac import CGAC
 
 HYPERPARAMS = pathlib.Path(__file__).parents[1] / "hyperparams" / "cgac.yml"
 

@@ -1,3 +1,5 @@
+from sb3_cgac import CGAC, MultiInputPolicy
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -9,8 +11,6 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
-
-from sb3_cgac import CGAC, MultiInputPolicy
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 

@@ -1,0 +1,233 @@
+"""
+Throughput of CGAC on large vectorised MuJoCo envs, measured side by side in one run.
+
+    python benchmarks/throughput.py --output docs/throughput.md   # full table (about 15 minutes on 2 cores)
+    python benchmarks/throughput.py --envs HalfCheetah-v5 --n-envs 256 --backends envpool --no-baselines
+
+For each env, number of envs and backend it prints:
+- raw: vec-env steps/s with random actions (the simulator's ceiling here);
+- collect: CGAC collection-only steps/s (averaged-actor actions, buffer writes) and its ratio to raw, both
+  measured alternately on the same env and compared by medians (this machine's speed drifts by +-20%);
+- e2e: CGAC end-to-end steps/s with the default update settings, and the split of wall-clock between env
+  stepping, inference (averaged-actor sampling), updates (targets + gradient steps) and everything else;
+- buffer: rollout-buffer bytes over raw transition bytes.
+It also measures SB3 PPO and SAC end to end with their zoo settings (hyperparams/ppo.yml, sac.yml) in the
+same run. Timings are ratios measured here, never asserted anywhere.
+"""
+
+import argparse
+import functools
+import os
+import platform
+import tempfile
+import time
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import make_vec_env
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+
+BACKEND_NAMES = {"dummy": "DummyVecEnv", "subproc": "SubprocVecEnv", "envpool": "envpool", "gymnasium": "gymnasium sync"}
+# SubprocVecEnv runs one process per env: beyond this, the processes alone exhaust 2 cores and 24 GiB
+MAX_PROCESSES = 64
+
+
+class TimedVecEnv(VecEnvWrapper):
+    """Accumulates the wall-clock spent inside the wrapped env's step."""
+
+    def __init__(self, venv: VecEnv):
+        super().__init__(venv)
+        self.seconds = 0.0
+
+    def reset(self):
+        return self.venv.reset()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        start = time.perf_counter()
+        self.venv.step_async(actions)
+        self.seconds += time.perf_counter() - start
+
+    def step_wait(self):
+        start = time.perf_counter()
+        result = self.venv.step_wait()
+        self.seconds += time.perf_counter() - start
+        return result
+
+
+class Timer:
+    def __init__(self, device: th.device):
+        self.seconds = 0.0
+        self.device = device
+
+    def wrap(self, function: Callable) -> Callable:
+        @functools.wraps(function)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            start = time.perf_counter()
+            result = function(*args, **kwargs)
+            if self.device.type == "cuda":
+                th.cuda.synchronize()
+            self.seconds += time.perf_counter() - start
+            return result
+
+        return timed
+
+
+class StopAfter(BaseCallback):
+    def __init__(self, seconds: float):
+        super().__init__()
+        self.seconds = seconds
+
+    def _on_training_start(self) -> None:
+        self.start = time.perf_counter()
+
+    def _on_step(self) -> bool:
+        return time.perf_counter() - self.start < self.seconds
+
+
+def rate(step: Callable[[], Any], n_envs: int, seconds: float) -> float:
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        step()
+        steps += 1
+    return steps * n_envs / (time.perf_counter() - start)
+
+
+def raw_and_collection(env: VecEnv, seconds: float, repeats: int) -> tuple[float, float, int, int]:
+    """
+    Raw vec-env steps/s (random actions) and CGAC collection-only steps/s, measured alternately on the same env
+    and compared by their medians: this machine's speed drifts by +-20% within seconds.
+    """
+    model = CGAC("MlpPolicy", env, seed=0)
+    _, callback = model._setup_learn(10**12)
+    callback.on_training_start(locals(), globals())
+    action_shape = env.action_space.shape or ()
+    actions = np.random.default_rng(0).uniform(-1, 1, (16, env.num_envs, *action_shape)).astype(np.float32)
+    counter = iter(range(10**12))
+
+    def raw_step() -> None:
+        env.step(actions[next(counter) % 16])
+
+    def collect_step() -> None:
+        model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=1)
+
+    rate(raw_step, env.num_envs, 1.0)
+    rate(collect_step, env.num_envs, 1.0)
+    raws, collects = [], []
+    for _ in range(repeats):
+        raws.append(rate(raw_step, env.num_envs, seconds))
+        collects.append(rate(collect_step, env.num_envs, seconds))
+    buffer = model.rollout_buffer
+    return float(np.median(raws)), float(np.median(collects)), buffer.nbytes(), buffer.raw_transition_nbytes()
+
+
+def end_to_end(env: VecEnv, seconds: float, device: str) -> dict[str, float]:
+    timed_env = TimedVecEnv(env)
+    model = CGAC("MlpPolicy", timed_env, device=device, seed=0)
+    # Fill the window first: updates start once it holds a minibatch
+    model.learn(model.buffer_window * env.num_envs, log_interval=10**9)
+    timer_inference, timer_update = Timer(model.device), Timer(model.device)
+    model.actor_avg.sample = timer_inference.wrap(model.actor_avg.sample)  # type: ignore[method-assign]
+    model.train = timer_update.wrap(model.train)  # type: ignore[method-assign]
+    timed_env.seconds = 0.0
+    start_steps, start = model.num_timesteps, time.perf_counter()
+    model.learn(10**12, callback=StopAfter(seconds), reset_num_timesteps=False, log_interval=10**9)
+    total = time.perf_counter() - start
+    env_s, inference_s, update_s = timed_env.seconds, timer_inference.seconds, timer_update.seconds
+    return {
+        "sps": (model.num_timesteps - start_steps) / total,
+        "env": env_s / total,
+        "inference": inference_s / total,
+        "update": update_s / total,
+        "else": (total - env_s - inference_s - update_s) / total,
+    }
+
+
+def baseline_throughput(algo: str, env_id: str, seconds: float) -> tuple[float, str]:
+    """SB3 PPO / SAC end to end with their zoo entry (hyperparams/<algo>.yml), built as rl_zoo3 builds them."""
+    from sb3_cgac.zoo import build_model
+
+    with tempfile.TemporaryDirectory() as log_folder:
+        model, manager = build_model(algo, env_id, seed=0, log_folder=log_folder, device="cpu")
+    warmup = model.n_steps * model.n_envs if algo == "ppo" else model.learning_starts + 200  # type: ignore[attr-defined]
+    model.learn(warmup)
+    start_steps, start = model.num_timesteps, time.perf_counter()
+    model.learn(10**12, callback=StopAfter(seconds), reset_num_timesteps=False)
+    sps = (model.num_timesteps - start_steps) / (time.perf_counter() - start)
+    return sps, f"zoo settings, {manager.n_envs} env{'s' if manager.n_envs > 1 else ''}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", nargs="+", default=["HalfCheetah-v5", "Ant-v5"])
+    parser.add_argument("--n-envs", nargs="+", type=int, default=[16, 64, 256, 1024])
+    parser.add_argument("--backends", nargs="+", default=list(BACKEND_NAMES), choices=list(BACKEND_NAMES))
+    parser.add_argument("--seconds", type=float, default=2.0, help="length of one raw or collection measurement")
+    parser.add_argument("--repeats", type=int, default=3, help="alternating raw/collection measurements per cell")
+    parser.add_argument("--no-baselines", action="store_true", help="skip SB3 PPO and SAC")
+    parser.add_argument("--output", default=None, help="also write the tables to this markdown file")
+    args = parser.parse_args()
+    warnings.filterwarnings("ignore", category=UserWarning)
+    devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
+
+    lines = [
+        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, "
+        f"{th.get_num_threads()} torch threads, devices: {', '.join(devices)}.",
+        f"Command: python benchmarks/throughput.py --seconds {args.seconds} --repeats {args.repeats}"
+        + (f" --envs {' '.join(args.envs)}" if args.envs != parser.get_default("envs") else "")
+        + (f" --n-envs {' '.join(map(str, args.n_envs))}" if args.n_envs != parser.get_default("n_envs") else ""),
+        "",
+        "| env | n_envs | backend | raw steps/s | collect steps/s (ratio) | e2e steps/s | env / infer / update / else "
+        "| buffer / raw bytes |" + "".join(f" e2e {d} steps/s |" for d in devices[1:]),
+        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * (len(devices) - 1),
+    ]
+    print("\n".join(lines), flush=True)
+    for env_id in args.envs:
+        for n_envs in args.n_envs:
+            for backend in args.backends:
+                name = BACKEND_NAMES[backend]
+                if backend == "subproc" and n_envs > MAX_PROCESSES:
+                    row = f"| {env_id} | {n_envs} | {name} | skipped: one process per env, > {MAX_PROCESSES} processes |"
+                    lines.append(row)
+                    print(row, flush=True)
+                    continue
+
+                def env(backend: str = backend, n_envs: int = n_envs, env_id: str = env_id) -> VecEnv:
+                    return make_vec_env(env_id, n_envs=n_envs, backend=backend, seed=0)
+
+                measured_env = env()
+                raw, collect, buffer_bytes, raw_bytes = raw_and_collection(measured_env, args.seconds, args.repeats)
+                measured_env.close()
+                e2e_env = env()
+                e2e = end_to_end(e2e_env, 2 * args.seconds, "cpu")
+                e2e_env.close()
+                extra = ""
+                for device in devices[1:]:
+                    device_env = env()
+                    extra += f" {end_to_end(device_env, 2 * args.seconds, device)['sps']:,.0f} |"
+                    device_env.close()
+                row = (
+                    f"| {env_id} | {n_envs} | {name} | {raw:,.0f} | {collect:,.0f} ({collect / raw:.0%}) | {e2e['sps']:,.0f} "
+                    f"| {e2e['env']:.0%} / {e2e['inference']:.0%} / {e2e['update']:.0%} / {e2e['else']:.0%} "
+                    f"| {buffer_bytes / raw_bytes:.2f} |{extra}"
+                )
+                lines.append(row)
+                print(row, flush=True)
+        if not args.no_baselines:
+            for algo in ("ppo", "sac"):
+                sps, description = baseline_throughput(algo, env_id, 2 * args.seconds)
+                row = f"| {env_id} | SB3 {algo.upper()} ({description}) | | | | {sps:,.0f} | | |"
+                lines.append(row)
+                print(row, flush=True)
+    if args.output:
+        with open(args.output, "w") as file:
+            file.write("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,58 @@
+"""
+The paper's ablations (Fig. 3) on a cheap env: number of parallel envs, no policy averaging, no value averaging,
+neither, and no alpha clamp. Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml`` with one change, run by
+compare.py's machinery (same budget options, CSV, plots and table; times are compared with the full CGAC)::
+
+    python examples/ablations.py --env HalfCheetah-v5 --backend envpool --seeds 2 --minutes 10 --jobs 2
+    python examples/ablations.py --env Hopper-v5 --steps 2000000 --variants cgac no_pol_avg no_val_avg
+
+``--n-envs`` sets the env counts of the parallel-env variants (default: a quarter and four times the entry's).
+"""
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from sb3_cgac.zoo import HYPERPARAMS_DIR
+
+import yaml
+from compare import main as compare_main
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "cgac": {},
+    "no_pol_avg": {"policy_tau": 1.0},  # the averaged actor is the actor
+    "no_val_avg": {"tau": 1.0},  # the target critic is the critic
+    "no_polval_avg": {"policy_tau": 1.0, "tau": 1.0},
+    "no_alpha_clamp": {"ent_coef_monotone": False},
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter, add_help=False)
+    parser.add_argument("--variants", nargs="+", default=None, help=f"subset of {list(VARIANTS)} and n_envs_<N>")
+    parser.add_argument("--n-envs", nargs="+", type=int, default=None, help="env counts of the n_envs variants")
+    known, rest = parser.parse_known_args()
+    env_id = rest[rest.index("--env") + 1] if "--env" in rest else None
+    if env_id is None:
+        compare_main(argv=["--help"])
+        return
+    entry = yaml.safe_load((HYPERPARAMS_DIR / "cgac.yml").read_text())[env_id]
+    n_envs = known.n_envs or [max(1, entry["n_envs"] // 4), entry["n_envs"] * 4]
+    variants = dict(VARIANTS)
+    for count in n_envs:
+        # Fewer envs hold fewer transitions: the batch may not exceed the window
+        batch_size = min(entry.get("batch_size") or 4096, count * entry.get("buffer_window", 32))
+        variants[f"n_envs_{count}"] = {"n_envs": count, "batch_size": batch_size}
+    chosen = known.variants or list(variants)
+    unknown = [name for name in chosen if name not in variants]
+    if unknown:
+        sys.exit(f"Unknown variants {unknown}; choose from {list(variants)}.")
+    runs = {name: {"file": "cgac", "overrides": variants[name]} for name in chosen}
+    if "--out" not in rest:
+        rest += ["--out", str(Path("results") / f"ablations-{env_id}")]
+    compare_main(runs=runs, argv=rest, references=("cgac",))
+
+
+if __name__ == "__main__":
+    main()

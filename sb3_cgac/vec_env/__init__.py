@@ -1,0 +1,67 @@
+"""
+Vectorised-env backends for large numbers of parallel envs, all as Stable-Baselines3 ``VecEnv``:
+SB3's ``DummyVecEnv`` and ``SubprocVecEnv``, ``EnvPoolVecEnv`` (C++ thread pool, extra ``envpool``) and
+``GymnasiumVecEnv`` over ``gymnasium.make_vec`` (sync or async).
+"""
+
+from typing import Any
+
+from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv
+from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv
+
+import gymnasium as gym
+from gymnasium.vector import AutoresetMode
+from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+
+BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async")
+
+
+def make_vec_env(
+    env_id: str,
+    n_envs: int = 1,
+    backend: str = "dummy",
+    seed: int | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+    vec_env_kwargs: dict[str, Any] | None = None,
+) -> VecEnv:
+    """
+    Build ``n_envs`` copies of ``env_id`` as an SB3 ``VecEnv`` with the chosen backend. Every backend gives
+    Monitor episode statistics (``rollout/ep_rew_mean``), ``terminal_observation`` and ``TimeLimit.truncated``.
+
+    :param env_id: Registered gymnasium id (an envpool task id for ``backend="envpool"``)
+    :param n_envs: Number of parallel envs
+    :param backend: ``"dummy"`` (SB3 DummyVecEnv: one process), ``"subproc"`` (SB3 SubprocVecEnv: a process per
+        env), ``"envpool"`` (one C++ thread pool, the fastest for MuJoCo), ``"gymnasium"`` / ``"gymnasium_async"``
+        (``gymnasium.make_vec`` in sync or async mode)
+    :param seed: Seed of the envs (env i gets ``seed + i``)
+    :param env_kwargs: Keyword arguments of the env constructor
+    :param vec_env_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool,
+        ``start_method`` for subproc, ``info_keys`` for the envpool and gymnasium adapters)
+    :return: The vectorised env
+    """
+    env_kwargs = env_kwargs or {}
+    vec_env_kwargs = vec_env_kwargs or {}
+    if backend in ("dummy", "subproc"):
+        vec_env_cls = DummyVecEnv if backend == "dummy" else SubprocVecEnv
+        return sb3_make_vec_env(
+            env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs, vec_env_cls=vec_env_cls, vec_env_kwargs=vec_env_kwargs
+        )
+    if backend == "envpool":
+        return EnvPoolVecEnv(env_id, n_envs, seed=seed if seed is not None else 0, **vec_env_kwargs, **env_kwargs)
+    if backend in ("gymnasium", "gymnasium_async"):
+        venv = gym.make_vec(
+            env_id,
+            num_envs=n_envs,
+            vectorization_mode="sync" if backend == "gymnasium" else "async",
+            vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
+            **env_kwargs,
+        )
+        vec_env = GymnasiumVecEnv(venv, **vec_env_kwargs)
+        if seed is not None:
+            vec_env.seed(seed)
+        return vec_env
+    raise ValueError(f"Unknown vec-env backend {backend!r}; choose one of {BACKENDS}.")
+
+
+__all__ = ["BACKENDS", "EnvPoolVecEnv", "GymnasiumVecEnv", "make_vec_env"]

@@ -1,0 +1,206 @@
+"""An SB3 ``VecEnv`` over a ``gymnasium.vector.VectorEnv`` (sync, async, or any batched simulator with that API)."""
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
+
+BatchObs = np.ndarray | dict[str, np.ndarray]
+
+
+def _rows(obs: BatchObs, index: Any) -> BatchObs:
+    if isinstance(obs, dict):
+        return {key: value[index] for key, value in obs.items()}
+    return obs[index]
+
+
+def _set_rows(obs: BatchObs, index: np.ndarray, values: BatchObs) -> None:
+    if isinstance(obs, dict):
+        assert isinstance(values, dict)
+        for key, value in obs.items():
+            value[index] = values[key]
+    else:
+        obs[index] = values
+
+
+def _batch_len(obs: BatchObs) -> int:
+    return len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
+
+
+class GymnasiumVecEnv(VecEnv):
+    """
+    View a ``gymnasium.vector.VectorEnv`` as a Stable-Baselines3 ``VecEnv``, honouring SB3's episode contract:
+    finished envs are reset in the same step, ``infos[i]["terminal_observation"]`` holds the last observation,
+    ``infos[i]["TimeLimit.truncated"]`` tells time limits from terminations, and ``infos[i]["episode"]``
+    carries the Monitor statistics (return, length, time), so no per-env ``Monitor`` is needed.
+
+    Gymnasium's three autoreset modes are supported: SAME_STEP maps directly; with NEXT_STEP (gymnasium's
+    default, and envpool's) and DISABLED, the finished envs are reset at once with ``reset(options={"reset_mask": ...})``,
+    so that no step is spent on a reset.
+
+    :param venv: The gymnasium vector env, e.g. from ``gym.make_vec(env_id, num_envs, vector_kwargs=...)``
+    :param info_keys: Per-env info entries to copy into SB3's info dicts at every step (each costs a loop over
+        envs). ``is_success`` is always copied for finished episodes.
+    """
+
+    def __init__(self, venv: gym.vector.VectorEnv, info_keys: Sequence[str] = ()):
+        if not isinstance(venv, gym.vector.VectorEnv):
+            raise TypeError(
+                f"GymnasiumVecEnv wraps a gymnasium.vector.VectorEnv, got {type(venv).__name__}. Build one with "
+                "gymnasium.make_vec(env_id, num_envs=...), or use SB3's DummyVecEnv for a list of single envs."
+            )
+        self.venv = venv
+        super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
+        self.info_keys = tuple(info_keys)
+        mode = venv.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
+        self.autoreset_mode = AutoresetMode(mode.value if isinstance(mode, AutoresetMode) else mode)
+        self._actions: np.ndarray | None = None
+        self._episode_returns = np.zeros(self.num_envs, dtype=np.float64)
+        self._episode_lengths = np.zeros(self.num_envs, dtype=np.int64)
+        self._start_time = time.time()
+
+    def _reset_backend(self, seed: list[int] | None, options: dict[str, Any] | None) -> tuple[BatchObs, dict[str, Any]]:
+        # Sync and async vector envs take one seed per env (the base class is typed with a single int)
+        return self.venv.reset(seed=seed, options=options)  # type: ignore[arg-type]
+
+    def reset(self) -> VecEnvObs:
+        seeds = None if all(seed is None for seed in self._seeds) else [int(seed or 0) for seed in self._seeds]
+        options = next((option for option in self._options if option), None)
+        obs, infos = self._reset_backend(seeds, options)
+        self._reset_seeds()
+        self._reset_options()
+        self.reset_infos = self._info_dicts(infos)
+        self._episode_returns[:] = 0
+        self._episode_lengths[:] = 0
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = actions
+
+    def step_wait(self) -> VecEnvStepReturn:
+        obs, rewards, terminated, truncated, infos = self.venv.step(self._actions)
+        rewards = np.asarray(rewards, dtype=np.float32)
+        terminated, truncated = np.asarray(terminated, dtype=bool), np.asarray(truncated, dtype=bool)
+        dones = terminated | truncated
+        self._episode_returns += rewards
+        self._episode_lengths += 1
+        step_infos = self._info_dicts(infos)
+        done_idx = np.flatnonzero(dones)
+        if len(done_idx) > 0:
+            if self.autoreset_mode == AutoresetMode.SAME_STEP:
+                terminal_obs = infos["final_obs"]
+                final_infos = infos.get("final_info", {})
+                terminal_rows = [terminal_obs[idx] for idx in done_idx]
+            else:
+                final_infos = infos
+                terminal_rows = self._split_rows(_rows(obs, done_idx), len(done_idx))
+                obs = self._reset_finished(obs, dones)
+            elapsed = round(time.time() - self._start_time, 6)
+            for row, idx in enumerate(done_idx):
+                info = step_infos[idx]
+                info["terminal_observation"] = terminal_rows[row]
+                info["TimeLimit.truncated"] = bool(truncated[idx] and not terminated[idx])
+                info["episode"] = {"r": float(self._episode_returns[idx]), "l": int(self._episode_lengths[idx]), "t": elapsed}
+                if "is_success" in final_infos and final_infos.get("_is_success", np.ones(self.num_envs, bool))[idx]:
+                    info["is_success"] = final_infos["is_success"][idx]
+            self._episode_returns[done_idx] = 0
+            self._episode_lengths[done_idx] = 0
+        return obs, rewards, dones, step_infos
+
+    def _split_rows(self, obs: BatchObs, n_rows: int) -> list[Any]:
+        if isinstance(obs, dict):
+            return [{key: value[row] for key, value in obs.items()} for row in range(n_rows)]
+        return list(obs)
+
+    def _reset_finished(self, obs: BatchObs, dones: np.ndarray) -> BatchObs:
+        """Reset the finished envs now (NEXT_STEP / DISABLED modes) and put their first observation in the batch."""
+        reset_obs, reset_infos = self.venv.reset(options={"reset_mask": dones})
+        done_idx = np.flatnonzero(dones)
+        if _batch_len(reset_obs) == self.num_envs:  # gymnasium returns every env
+            reset_obs = _rows(reset_obs, done_idx)
+        elif "env_id" in reset_infos:  # envpool returns the reset envs only, with their ids
+            order = np.argsort(np.asarray(reset_infos["env_id"]))
+            reset_obs = _rows(reset_obs, order)
+        obs = {key: np.array(value) for key, value in obs.items()} if isinstance(obs, dict) else np.array(obs)
+        _set_rows(obs, done_idx, reset_obs)
+        return obs
+
+    def _info_dicts(self, infos: dict[str, Any]) -> list[dict[str, Any]]:
+        # Gymnasium batches infos as {key: array, "_key": mask}; SB3 wants one dict per env
+        dicts: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        for key in self.info_keys:
+            if key in infos:
+                mask = infos.get(f"_{key}", np.ones(self.num_envs, dtype=bool))
+                for idx in np.flatnonzero(mask):
+                    dicts[idx][key] = infos[key][idx]
+        return dicts
+
+    def close(self) -> None:
+        self.venv.close()
+
+    def _indices(self, indices: VecEnvIndices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        if isinstance(indices, int):
+            return [indices]
+        return list(indices)
+
+    def _vector_method(self, name: str) -> Callable[..., Any]:
+        # get_attr / set_attr / call belong to gymnasium's sync and async vector envs, not to every VectorEnv
+        method = getattr(self.venv, name, None)
+        if method is None:
+            raise NotImplementedError(f"GymnasiumVecEnv: {type(self.venv).__name__} has no {name}() method.")
+        return method
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        if attr_name == "render_mode":
+            values: Sequence[Any] = [getattr(self.venv, "render_mode", None)] * self.num_envs
+        else:
+            values = self._vector_method("get_attr")(attr_name)
+        return [values[idx] for idx in self._indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        set_attr = self._vector_method("set_attr")
+        if indices is None:
+            set_attr(attr_name, [value] * self.num_envs)
+            return
+        # Gymnasium sets all envs at once: keep the others' current values
+        try:
+            values = list(self._vector_method("get_attr")(attr_name))
+        except AttributeError as error:
+            raise AttributeError(
+                f"GymnasiumVecEnv: {attr_name!r} does not exist yet; gymnasium vector envs can only create an "
+                "attribute on all envs at once (indices=None)."
+            ) from error
+        for idx in self._indices(indices):
+            values[idx] = value
+        set_attr(attr_name, values)
+
+    def env_method(
+        self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
+    ) -> list[Any]:
+        results = self._vector_method("call")(method_name, *method_args, **method_kwargs)
+        return [results[idx] for idx in self._indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        # The episode statistics of this adapter stand in for a Monitor wrapper
+        if issubclass(Monitor, wrapper_class):
+            return [True for _ in self._indices(indices)]
+        envs: Iterable[gym.Env] | None = getattr(self.venv, "envs", None)
+        if envs is None:
+            return [False for _ in self._indices(indices)]
+        env_list = list(envs)
+        return [_is_wrapped(env_list[idx], wrapper_class) for idx in self._indices(indices)]
+
+
+def _is_wrapped(env: gym.Env, wrapper_class: type[gym.Wrapper]) -> bool:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, wrapper_class):
+            return True
+        env = env.env
+    return False

@@ -1,0 +1,236 @@
+"""
+rl-baselines3-zoo integration (extra ``zoo``): CGAC registered as ``rl_zoo3.ALGOS["cgac"]``, this package's
+hyperparameter files as the default configuration, and the vectorised-env backends of ``sb3_cgac.vec_env``
+behind the zoo's ``--vec-env`` flag (``envpool``, ``gymnasium``, ``gymnasium_async`` besides ``dummy`` and ``subproc``).
+"""
+
+import argparse
+import contextlib
+import functools
+import importlib
+import importlib.resources
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import BACKENDS, make_vec_env
+
+import gymnasium as gym
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.utils import ConstantSchedule
+from stable_baselines3.common.vec_env import VecEnv
+
+try:
+    import rl_zoo3.enjoy
+    import rl_zoo3.exp_manager
+    import rl_zoo3.train
+    from rl_zoo3.exp_manager import ExperimentManager
+    from rl_zoo3.utils import ALGOS, SimpleLinearSchedule
+except ImportError as error:  # pragma: no cover - depends on the installed extras
+    raise ImportError(f"sb3_cgac.zoo needs rl_zoo3 and its dependencies: pip install 'sb3_cgac[zoo]' ({error}).") from error
+
+HYPERPARAMS_DIR = Path(str(importlib.resources.files("sb3_cgac.hyperparams")))
+# Backends that are not built from per-env constructors, so the zoo's own make_vec_env cannot build them
+ADAPTER_BACKENDS = ("envpool", "gymnasium", "gymnasium_async")
+# Learning-rate keys turned into schedules: the zoo's own, and CGAC's separate critic and alpha rates
+SCHEDULE_KEYS = ("learning_rate", "critic_learning_rate", "ent_coef_learning_rate", "clip_range", "clip_range_vf", "delta_std")
+
+
+def register() -> None:
+    """Register CGAC in rl_zoo3, and the envs of gymnasium-robotics and MyoSuite when they are installed."""
+    ALGOS["cgac"] = CGAC
+    with contextlib.suppress(ImportError):
+        import gymnasium_robotics
+
+        gym.register_envs(gymnasium_robotics)
+    with contextlib.suppress(ImportError):
+        import myosuite  # noqa: F401  (registers the myo* envs on import)
+
+
+def hyperparams_file(algo: str) -> Path | None:
+    """This package's YAML file for ``algo`` (cgac, ppo, sac), or None to use the zoo's own."""
+    path = HYPERPARAMS_DIR / f"{algo}.yml"
+    return path if path.exists() else None
+
+
+@contextlib.contextmanager
+def _swapped(owner: Any, name: str, value: Any) -> Iterator[None]:
+    original = getattr(owner, name)
+    setattr(owner, name, value)
+    try:
+        yield
+    finally:
+        setattr(owner, name, original)
+
+
+class CGACExperimentManager(ExperimentManager):
+    """
+    rl_zoo3's ``ExperimentManager`` with two additions: ``backend`` builds the training and evaluation envs with
+    ``sb3_cgac.vec_env.make_vec_env`` (the zoo's normalization, frame stacking and VecEnv wrappers still apply),
+    and CGAC's ``critic_learning_rate`` / ``ent_coef_learning_rate`` accept the zoo's ``lin_<value>`` schedules.
+
+    :param backend: One of ``sb3_cgac.vec_env.BACKENDS``
+    :param backend_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool)
+    """
+
+    def __init__(self, *args: Any, backend: str = "dummy", backend_kwargs: dict[str, Any] | None = None, **kwargs: Any):
+        if backend not in BACKENDS:
+            raise ValueError(f"Unknown --vec-env {backend!r}; choose one of {BACKENDS}.")
+        if backend in ADAPTER_BACKENDS:
+            kwargs["vec_env_type"] = "dummy"
+        elif "vec_env_type" not in kwargs:
+            kwargs["vec_env_type"] = backend
+        super().__init__(*args, **kwargs)
+        self.backend = backend
+        self.backend_kwargs = backend_kwargs or {}
+
+    @staticmethod
+    def _preprocess_schedules(hyperparams: dict[str, Any]) -> dict[str, Any]:
+        for key in SCHEDULE_KEYS:
+            value = hyperparams.get(key)
+            if isinstance(value, str):
+                schedule, initial_value = value.split("_")
+                if schedule != "lin":
+                    raise ValueError(f"Unknown schedule {value!r} for {key}: use 'lin_<initial value>' or a number.")
+                hyperparams[key] = SimpleLinearSchedule(float(initial_value))
+            elif isinstance(value, (float, int)) and value >= 0:
+                hyperparams[key] = ConstantSchedule(float(value))
+        return hyperparams
+
+    def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
+        if self.backend not in ADAPTER_BACKENDS:
+            return super().create_envs(n_envs, eval_env, no_log)
+        with _swapped(rl_zoo3.exp_manager, "make_vec_env", self._make_adapter_vec_env):
+            return super().create_envs(n_envs, eval_env, no_log)
+
+    def _make_adapter_vec_env(
+        self, env_fn: Callable, n_envs: int = 1, seed: int | None = None, env_kwargs: dict | None = None, **kwargs: Any
+    ) -> VecEnv:
+        # Same signature as SB3's make_vec_env, which the zoo calls; the backend builds the envs by id instead
+        if kwargs.get("wrapper_class") is not None:
+            raise ValueError(
+                f"The {self.backend} backend builds its envs by id and cannot apply the YAML's env_wrapper "
+                f"({kwargs['wrapper_class']}); use --vec-env dummy or subproc for this entry."
+            )
+        return make_vec_env(
+            self.env_name.gym_id,
+            n_envs=n_envs,
+            backend=self.backend,
+            seed=seed,
+            env_kwargs=env_kwargs,
+            vec_env_kwargs=self.backend_kwargs,
+        )
+
+
+def _option_value(argv: list[str], names: tuple[str, ...]) -> str | None:
+    for index, arg in enumerate(argv):
+        for name in names:
+            if arg == name and index + 1 < len(argv):
+                return argv[index + 1]
+            if arg.startswith(name + "="):
+                return arg.split("=", 1)[1]
+    return None
+
+
+def _without_option(argv: list[str], name: str) -> list[str]:
+    result, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == name:
+            skip = True
+        elif not arg.startswith(name + "="):
+            result.append(arg)
+    return result
+
+
+def train(argv: list[str] | None = None) -> None:
+    """
+    Run rl_zoo3's trainer (``rl_zoo3.train.train``) with CGAC registered, this package's hyperparameter files
+    as the default ``--conf-file`` for cgac, ppo and sac, and the extra ``--vec-env`` backends.
+
+    :param argv: Command-line arguments (default: ``sys.argv[1:]``)
+    """
+    register()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    backend = _option_value(argv, ("--vec-env",)) or "dummy"
+    argv = _without_option(argv, "--vec-env")
+    if backend in ("dummy", "subproc"):
+        argv += ["--vec-env", backend]
+    algo = _option_value(argv, ("--algo",)) or "ppo"
+    conf = hyperparams_file(algo)
+    if _option_value(argv, ("-conf", "--conf-file")) is None and conf is not None:
+        argv += ["--conf-file", str(conf)]
+    manager = functools.partial(CGACExperimentManager, backend=backend)
+    with _swapped(rl_zoo3.train, "ExperimentManager", manager), _swapped(sys, "argv", ["sb3_cgac.train", *argv]):
+        rl_zoo3.train.train()
+
+
+def enjoy(argv: list[str] | None = None) -> None:
+    """
+    Run rl_zoo3's ``enjoy`` (replay a trained agent) with CGAC registered.
+
+    :param argv: Command-line arguments (default: ``sys.argv[1:]``)
+    """
+    register()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    with _swapped(sys, "argv", ["sb3_cgac.enjoy", *argv]):
+        rl_zoo3.enjoy.enjoy()
+
+
+def build_model(
+    algo: str,
+    env_id: str,
+    seed: int = 0,
+    backend: str = "dummy",
+    backend_kwargs: dict[str, Any] | None = None,
+    log_folder: str = "logs",
+    conf_file: str | None = None,
+    hyperparams: dict[str, Any] | None = None,
+    n_timesteps: int = 0,
+    device: str = "auto",
+    verbose: int = 0,
+) -> tuple[BaseAlgorithm, CGACExperimentManager]:
+    """
+    Build a model from a YAML entry exactly as ``python -m sb3_cgac.train`` does (same preprocessing, envs,
+    normalization and callbacks), without training it.
+
+    :param algo: Algorithm key (cgac, ppo, sac, or any rl_zoo3 algorithm)
+    :param env_id: Env id; the YAML entry of that id is used
+    :param seed: Seed
+    :param backend: Vec-env backend (``sb3_cgac.vec_env.BACKENDS``)
+    :param backend_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool)
+    :param log_folder: Where the zoo writes the run's config and logs
+    :param conf_file: YAML file (default: this package's file for ``algo``, else the zoo's)
+    :param hyperparams: Overrides of the YAML entry (like the zoo's ``-params``)
+    :param n_timesteps: Overrides the entry's ``n_timesteps`` when > 0
+    :param device: Torch device
+    :param verbose: Verbosity of the model
+    :return: The model, and the experiment manager (its ``callbacks`` are the entry's callbacks to pass to learn)
+    """
+    register()
+    conf = conf_file or hyperparams_file(algo)
+    args = argparse.Namespace(algo=algo, env=env_id, seed=seed, vec_env=backend, conf_file=conf)
+    manager = CGACExperimentManager(
+        args,
+        algo,
+        env_id,
+        log_folder,
+        n_timesteps=n_timesteps,
+        eval_freq=-1,
+        hyperparams=hyperparams,
+        seed=seed,
+        verbose=verbose,
+        device=device,
+        config=None if conf is None else str(conf),
+        backend=backend,
+        backend_kwargs=backend_kwargs,
+    )
+    result = manager.setup_experiment()
+    assert result is not None
+    return result[0], manager
+
+
+__all__ = ["HYPERPARAMS_DIR", "CGACExperimentManager", "build_model", "enjoy", "register", "train"]

@@ -1,0 +1,153 @@
+"""The rl_zoo3 integration, driven through the real rl_zoo3 code."""
+
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip("rl_zoo3")
+
+from sb3_cgac import CGAC
+from sb3_cgac.zoo import HYPERPARAMS_DIR, build_model, register, train
+
+import gymnasium as gym
+import rl_zoo3
+
+ROOT = pathlib.Path(__file__).parents[1]
+EXAMPLES = ROOT / "examples"
+YAML_FILES = sorted(path.stem for path in HYPERPARAMS_DIR.glob("*.yml"))
+
+
+def run_dir(log_folder: pathlib.Path, algo: str, env_id: str) -> pathlib.Path:
+    runs = sorted((log_folder / algo).glob(f"{env_id}_*"))
+    assert runs, f"no run folder in {log_folder / algo}"
+    return runs[-1]
+
+
+def test_cgac_is_registered():
+    register()
+    assert rl_zoo3.ALGOS["cgac"] is CGAC
+    assert HYPERPARAMS_DIR.samefile(ROOT / "hyperparams")
+
+
+def test_train_cgac_from_our_yaml_with_flags(tmp_path):
+    """Our default hyperparams file, and the rl_zoo3 flags: -n, --seed, --eval-freq, -tb, -params, -P, --save-freq."""
+    train(
+        ["--algo", "cgac", "--env", "Pendulum-v1", "-n", "640", "--seed", "3", "--eval-freq", "5", "--eval-episodes", "1",
+         "-tb", str(tmp_path / "tb"), "-params", "learning_rate:0.001", "buffer_window:8", "-P", "--save-freq", "5",
+         "-f", str(tmp_path / "logs"), "--verbose", "0"]
+    )  # fmt: skip
+    folder = run_dir(tmp_path / "logs", "cgac", "Pendulum-v1")
+    config = yaml.unsafe_load((folder / "Pendulum-v1" / "config.yml").read_text())
+    assert dict(config)["learning_rate"] == 0.001 and dict(config)["buffer_window"] == 8
+    args = yaml.unsafe_load((folder / "Pendulum-v1" / "args.yml").read_text())
+    assert str(HYPERPARAMS_DIR / "cgac.yml") in str(args)
+    assert (folder / "evaluations.npz").exists()  # --eval-freq (in calls: 5 x 64 envs)
+    assert list(folder.glob("rl_model_*_steps.zip"))  # --save-freq
+    assert any((tmp_path / "tb").rglob("events.out.tfevents.*"))  # -tb
+    model = CGAC.load(folder / "Pendulum-v1.zip")
+    assert model.n_envs == 64 and model.lr_schedule(1.0) == pytest.approx(0.001)
+
+
+def test_yaml_callback_and_cgac_keys(tmp_path):
+    """A YAML `callback:` entry (the entropy schedule) and CGAC-specific keys, including lin_ schedules."""
+    entry = yaml.safe_load((HYPERPARAMS_DIR / "cgac.yml").read_text())["Pendulum-v1"]
+    entry.update(
+        n_envs=8,
+        critic_learning_rate="lin_1e-3",
+        ent_coef_learning_rate=0.01,
+        gae_horizon=4,
+        callback=[{"sb3_cgac.callbacks.ProgressEntropySchedule": {"beta_init": 0.5, "beta_final": 2.5}}],
+    )
+    conf = tmp_path / "custom.yml"
+    conf.write_text(yaml.safe_dump({"Pendulum-v1": entry}))
+    train(["--algo", "cgac", "--env", "Pendulum-v1", "-n", "400", "-conf", str(conf), "-f", str(tmp_path), "--seed", "0"])
+    model = CGAC.load(run_dir(tmp_path, "cgac", "Pendulum-v1") / "Pendulum-v1.zip")
+    assert model.target_entropy_beta == pytest.approx(2.5)  # the schedule ran to its end
+    assert model.critic_lr_schedule(0.5) == pytest.approx(5e-4) and model.gae_horizon == 4
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_ppo_and_sac_read_our_files(tmp_path, algo):
+    train(["--algo", algo, "--env", "Pendulum-v1", "-n", "200", "-f", str(tmp_path), "--seed", "0", "--verbose", "0"])
+    args = yaml.unsafe_load((run_dir(tmp_path, algo, "Pendulum-v1") / "Pendulum-v1" / "args.yml").read_text())
+    assert str(HYPERPARAMS_DIR / f"{algo}.yml") in str(args)
+
+
+def test_envpool_backend_and_enjoy(tmp_path):
+    pytest.importorskip("envpool")
+    train(["--algo", "cgac", "--env", "Pendulum-v1", "-n", "1280", "--vec-env", "envpool", "-f", str(tmp_path), "--seed", "0"])
+    model_path = run_dir(tmp_path, "cgac", "Pendulum-v1") / "Pendulum-v1.zip"
+    assert model_path.exists()
+    # The model trained on envpool replays on the gymnasium env of the same id
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_cgac.enjoy", "--algo", "cgac", "--env", "Pendulum-v1", "-f", str(tmp_path),
+         "--exp-id", "1", "-n", "210", "--no-render"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "Mean reward" in result.stdout
+
+
+def yaml_entries() -> list[tuple[str, str]]:
+    return [(name, env_id) for name in YAML_FILES for env_id in yaml.safe_load((HYPERPARAMS_DIR / f"{name}.yml").read_text())]
+
+
+@pytest.mark.parametrize("name, env_id", yaml_entries())
+def test_every_yaml_entry_builds(tmp_path, name, env_id):
+    register()
+    if env_id not in gym.registry:
+        pytest.skip(f"{env_id} is not installed (MyoSuite: pip install 'sb3_cgac[myosuite]' in its own environment)")
+    backend = "envpool" if env_id.endswith("-v5") else "dummy"
+    if backend == "envpool":
+        pytest.importorskip("envpool")
+    model, manager = build_model(name.split("_")[0], env_id, backend=backend, log_folder=str(tmp_path),
+                                 conf_file=str(HYPERPARAMS_DIR / f"{name}.yml"))  # fmt: skip
+    assert model.get_env() is not None and model.n_envs == manager.n_envs
+    obs = model.get_env().reset()
+    actions, _ = model.predict(obs, deterministic=True)
+    assert np.all(np.isfinite(actions))
+    model.get_env().close()
+
+
+def test_compare_script_tiny_budget(tmp_path):
+    out = tmp_path / "cmp"
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "compare.py"), "--env", "Pendulum-v1", "--seeds", "1", "--steps", "1000",
+         "--jobs", "2", "--eval-episodes", "2", "--eval-envs", "2", "--out", str(out)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    for name in ("evaluations.csv", "return_vs_steps.png", "return_vs_time.png", "summary.md"):
+        assert (out / name).exists(), name
+    rows = (out / "evaluations.csv").read_text().splitlines()
+    assert rows[0] == "run,seed,steps,seconds,mean_return"
+    assert {row.split(",")[0] for row in rows[1:]} == {"cgac", "ppo", "sac"}
+    table = (out / "summary.md").read_text()
+    assert "best of ppo's final returns" in table
+    assert [line.split(" | ")[0] for line in table.splitlines()[4:]] == ["| cgac", "| ppo", "| sac"]
+    # Finished pairs are skipped when the command runs again
+    again = subprocess.run(
+        [sys.executable, str(EXAMPLES / "compare.py"), "--env", "Pendulum-v1", "--seeds", "1", "--steps", "1000",
+         "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert again.returncode == 0 and "3 of 3 (run, seed) pairs already done" in again.stdout
+
+
+def test_ablations_script_tiny_budget(tmp_path):
+    out = tmp_path / "abl"
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "ablations.py"), "--env", "Pendulum-v1", "--variants", "cgac", "no_pol_avg",
+         "n_envs_16", "--seeds", "1", "--steps", "640", "--jobs", "2", "--eval-episodes", "1", "--eval-envs", "1",
+         "--out", str(out)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    table = (out / "summary.md").read_text()
+    assert "best of cgac's final returns" in table
+    for variant in ("cgac", "no_pol_avg", "n_envs_16"):
+        assert f"| {variant} |" in table
