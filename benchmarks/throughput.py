@@ -33,6 +33,15 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
+LEGEND = """\
+raw: vec-env steps/s with random actions. collect: CGAC collection only (averaged-actor actions and buffer writes),
+measured alternately with raw on the same env, medians of 3; ratio = collect / raw. e2e: CGAC end to end with its
+default update settings (1 new step per iteration, 32-step window, batch min(4096, 32 x n_envs), 2 critic + 1 actor
+updates per step, [256, 256] networks), and the split of its wall-clock between env stepping, inference (sampling
+the averaged actor), updates (value targets and gradient steps) and everything else. buffer / raw bytes: rollout
+buffer memory over the bytes of the transitions themselves (observation, action, next action, reward, two flags).
+SubprocVecEnv runs a process per env and is skipped beyond 64. The machine's speed drifts by +-20% between runs."""
+
 BACKEND_NAMES = {"dummy": "DummyVecEnv", "subproc": "SubprocVecEnv", "envpool": "envpool", "gymnasium": "gymnasium sync"}
 # SubprocVecEnv runs one process per env: beyond this, the processes alone exhaust 2 cores and 24 GiB
 MAX_PROCESSES = 64
@@ -126,9 +135,10 @@ def raw_and_collection(env: VecEnv, seconds: float, repeats: int) -> tuple[float
     return float(np.median(raws)), float(np.median(collects)), buffer.nbytes(), buffer.raw_transition_nbytes()
 
 
-def end_to_end(env: VecEnv, seconds: float, device: str) -> dict[str, float]:
+def end_to_end(env: VecEnv, seconds: float, device: str, **cgac_kwargs: Any) -> dict[str, float]:
+    """CGAC end to end (defaults unless ``cgac_kwargs`` say otherwise) and the split of its wall-clock."""
     timed_env = TimedVecEnv(env)
-    model = CGAC("MlpPolicy", timed_env, device=device, seed=0)
+    model = CGAC("MlpPolicy", timed_env, device=device, seed=0, **cgac_kwargs)
     # Fill the window first: updates start once it holds a minibatch
     model.learn(model.buffer_window * env.num_envs, log_interval=10**9)
     timer_inference, timer_update = Timer(model.device), Timer(model.device)
@@ -176,11 +186,16 @@ def main() -> None:
     devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
 
     lines = [
+        "# CGAC throughput",
+        "",
+        LEGEND,
+        "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, "
         f"{th.get_num_threads()} torch threads, devices: {', '.join(devices)}.",
         f"Command: python benchmarks/throughput.py --seconds {args.seconds} --repeats {args.repeats}"
         + (f" --envs {' '.join(args.envs)}" if args.envs != parser.get_default("envs") else "")
-        + (f" --n-envs {' '.join(map(str, args.n_envs))}" if args.n_envs != parser.get_default("n_envs") else ""),
+        + (f" --n-envs {' '.join(map(str, args.n_envs))}" if args.n_envs != parser.get_default("n_envs") else "")
+        + (f" --output {args.output}" if args.output else ""),
         "",
         "| env | n_envs | backend | raw steps/s | collect steps/s (ratio) | e2e steps/s | env / infer / update / else "
         "| buffer / raw bytes |" + "".join(f" e2e {d} steps/s |" for d in devices[1:]),

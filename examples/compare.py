@@ -12,12 +12,12 @@ them. Every (run, seed) pair trains in its own process with one torch thread and
 of them at once, so that two runs share a 2-core machine evenly. Finished pairs are skipped when the command runs
 again: a long comparison can be split over several calls.
 
-The budget is env steps (``--steps``) or training wall-clock minutes (``--minutes``; evaluation time is not
-counted). Evaluations are deterministic, on separate envs, every ``--eval-every`` of the budget (a fraction of the
-steps, or minutes). Outputs in ``--out``: ``evaluations.csv`` (run, seed, steps, seconds, mean_return),
-``return_vs_steps.png`` and ``return_vs_time.png`` (mean with a 95% bootstrap band over seeds; the IQM with
-rliable from 3 seeds on) and ``summary.md`` (final and best return, steps/s, time to reach a threshold, and the
-ratios of those times to PPO's and SAC's).
+The budget is env steps (``--steps``) or training wall-clock minutes (``--minutes``; evaluation time is not counted,
+and the entries' ``n_timesteps`` do not stop a run early). Evaluations are deterministic, on separate envs, every
+``--eval-every`` of the budget (a fraction of the steps, or minutes). Outputs in ``--out``: ``evaluations.csv``
+(run, seed, steps, seconds, mean_return), ``return_vs_steps.png`` and ``return_vs_time.png`` (mean with a 95%
+bootstrap band over seeds; the IQM with rliable from 3 seeds on) and ``summary.md`` (final and best return,
+steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's).
 """
 
 import argparse
@@ -92,7 +92,10 @@ def train_one(args: argparse.Namespace) -> None:
             sync_envs_normalization(self.training_env, eval_env)
             mean_return, _ = evaluate_policy(self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)
             rows.append(f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}\n")
-            csv_path.write_text(",".join(COLUMNS) + "\n" + "".join(rows))
+            # Atomic replace: the parent process reads this file to show progress
+            partial = csv_path.with_suffix(".tmp")
+            partial.write_text(",".join(COLUMNS) + "\n" + "".join(rows))
+            partial.replace(csv_path)
             self.resumed = time.perf_counter()
 
         def _on_step(self) -> bool:
@@ -106,8 +109,9 @@ def train_one(args: argparse.Namespace) -> None:
             self.evaluate()
 
     evaluator = EvaluateWithinBudget()
-    # With a time budget, learn() is given the entry's n_timesteps so that schedules behave as configured
-    model.learn(args.steps or manager.n_timesteps, callback=[*manager.callbacks, evaluator])
+    # With a time budget, training runs until the clock is out, whatever the entry's n_timesteps; schedules that
+    # follow training progress then stay near their start (the entries compared here use none)
+    model.learn(args.steps or 10**12, callback=[*manager.callbacks, evaluator])
     done_path.write_text(json.dumps({"steps": model.num_timesteps, "seconds": evaluator.seconds}))
 
 
@@ -135,7 +139,10 @@ def progress_of(out: Path, run: str, seed: int, minutes: bool) -> float:
     if not csv_path.exists():
         return 0.0
     last = csv_path.read_text().strip().splitlines()[-1].split(",")
-    return float(last[3] if minutes else last[2]) if last[0] == run else 0.0
+    try:
+        return float(last[3] if minutes else last[2])
+    except (IndexError, ValueError):  # the header only
+        return 0.0
 
 
 def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], references: tuple[str, ...]) -> None:
@@ -168,7 +175,7 @@ def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], re
                 finished += 1
             used = finished * budget + sum(min(progress_of(out, *pair, bool(args.minutes)), budget) for pair in running)
             bar.update(used - bar.n)
-            bar.set_postfix_str(", ".join(f"{run} s{seed}" for run, seed in running))
+            bar.set_postfix_str(", ".join(f"{run} s{seed}" for run, seed in running), refresh=False)
     summarise(out, list(runs), args.seeds, args.threshold, references)
 
 
@@ -196,14 +203,15 @@ def aggregate_curves(curves: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray |
         try:
             from rliable import library as rly
             from rliable import metrics
+        except Exception:  # not installed, or its dependency arch broken (pandas 3): fall back to the mean
+            rly = None
+        if rly is not None:
 
             def iqm(values: np.ndarray) -> np.ndarray:
                 return np.array([metrics.aggregate_iqm(values[..., point]) for point in range(values.shape[-1])])
 
             point, band = rly.get_interval_estimates({"run": scores[:, None, :]}, iqm, reps=500)
             return point["run"], band["run"], "IQM"
-        except ImportError:
-            pass
     rng = np.random.default_rng(0)
     resampled = scores[rng.integers(0, len(curves), (1000, len(curves)))].mean(axis=1)
     return scores.mean(axis=0), np.percentile(resampled, [2.5, 97.5], axis=0), "mean"

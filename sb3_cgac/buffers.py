@@ -97,9 +97,9 @@ class CGACRolloutBuffer:
     again: it is the following step's observation, the ``current observation`` of the buffer for the newest
     step, or the kept terminal observation of a truncated episode.
 
-    Each collection of new steps ends with :meth:`compute_returns`, which evaluates the min-of-twin target Q
-    at (next observation, next action) for the new steps only (``Qbar``, computed once as in the paper's code)
-    and then the Q-GAE targets of the whole window (paper Eq. 9-10):
+    Before the updates, :meth:`compute_returns` evaluates the min-of-twin target Q at (next observation, next
+    action) for the steps added since its last call only (``Qbar``, computed once as in the paper's code), then
+    the Q-GAE targets of the whole window (paper Eq. 9-10):
     ``Y_t = r_t + g m_t Qbar_{t+1} + sum_{k>=1} (g lam)^k [r_{t+k} + g m_{t+k} Qbar_{t+k+1} - Qbar_{t+k}]``,
     the sum being cut at episode ends, at the newest step of the window and after ``gae_horizon`` terms.
 

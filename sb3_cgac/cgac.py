@@ -515,7 +515,7 @@ class CGAC(OnPolicyAlgorithm):
         entropy = -(log_prob.detach() * data.weights).sum() / weight_sum
         return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
 
-    def _update_learning_rates(self) -> float:
+    def _update_learning_rates(self) -> None:
         progress = self._current_progress_remaining
         self._update_learning_rate(self.actor.optimizer)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(progress))
@@ -523,7 +523,6 @@ class CGAC(OnPolicyAlgorithm):
         if self.ent_coef_optimizer is not None:
             lr = self.ent_coef_lr_schedule(progress) if self.ent_coef_lr_schedule else 10 * self.lr_schedule(progress)
             update_learning_rate(self.ent_coef_optimizer, lr)
-        return progress
 
     def train(self) -> None:
         """Value targets of the new steps, then critic, actor, entropy-coefficient and Polyak updates on minibatches."""

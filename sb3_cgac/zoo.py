@@ -155,6 +155,12 @@ def train(argv: list[str] | None = None) -> None:
     """
     register()
     argv = list(sys.argv[1:] if argv is None else argv)
+    if "-h" in argv or "--help" in argv:
+        print(
+            "python -m sb3_cgac.train: rl_zoo3's trainer with CGAC registered (--algo cgac). --algo cgac, ppo and sac "
+            f"read {HYPERPARAMS_DIR}/<algo>.yml unless -conf is given, and --vec-env also accepts "
+            f"{', '.join(ADAPTER_BACKENDS)}. rl_zoo3's own help follows.\n"
+        )
     backend = _option_value(argv, ("--vec-env",)) or "dummy"
     argv = _without_option(argv, "--vec-env")
     if backend in ("dummy", "subproc"):

@@ -190,3 +190,17 @@ def test_multi_input_policy():
     obs = {"position": np.zeros((1, 2), np.float32), "velocity": np.zeros((1, 1), np.float32)}
     action, _ = model.predict(obs, deterministic=True)
     assert action.shape == (1, 2)
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda(tmp_path):
+    """Training, targets, save/load and predict on the GPU (CI has none; run on a machine with one)."""
+    env = VecNormalize(make_env(8))
+    model = CGAC("MlpPolicy", env, device="cuda", clip_actor_gradient_outliers=True, entropy_schedule="reward", **SMALL)
+    model.learn(1000)  # Pendulum truncates at 200 steps: terminal observations go to the GPU too
+    assert model.rollout_buffer.returns.is_cuda and next(model.policy.parameters()).is_cuda
+    model.save(tmp_path / "cuda_model")
+    loaded = CGAC.load(tmp_path / "cuda_model", env=env, device="cpu")
+    obs = env.reset()
+    expected = model.predict(obs, deterministic=True)[0]
+    np.testing.assert_allclose(expected, loaded.predict(obs, deterministic=True)[0], atol=1e-5)
