@@ -3,6 +3,7 @@ Throughput of CGAC on large vectorised MuJoCo envs, measured side by side in one
 
     python benchmarks/throughput.py --output docs/throughput.md   # full table (about 15 minutes on 2 cores)
     python benchmarks/throughput.py --envs HalfCheetah-v5 --n-envs 256 --backends envpool --no-baselines
+    python benchmarks/throughput.py --zoo-split Pendulum-v1   # split of CGAC built from its YAML entry only
 
 For each env, number of envs and backend it prints:
 - raw: vec-env steps/s with random actions (the simulator's ceiling here);
@@ -137,10 +138,27 @@ def raw_and_collection(env: VecEnv, seconds: float, repeats: int) -> tuple[float
 
 def end_to_end(env: VecEnv, seconds: float, device: str, **cgac_kwargs: Any) -> dict[str, float]:
     """CGAC end to end (defaults unless ``cgac_kwargs`` say otherwise) and the split of its wall-clock."""
-    timed_env = TimedVecEnv(env)
-    model = CGAC("MlpPolicy", timed_env, device=device, seed=0, **cgac_kwargs)
+    return timed_split(CGAC("MlpPolicy", TimedVecEnv(env), device=device, seed=0, **cgac_kwargs), seconds)
+
+
+def zoo_split(env_id: str, seconds: float, backend: str) -> dict[str, float]:
+    """CGAC built from its YAML entry (hyperparams/cgac.yml) as the zoo builds it, and the split of its wall-clock."""
+    from sb3_cgac.zoo import build_model
+
+    with tempfile.TemporaryDirectory() as log_folder:
+        model, _ = build_model("cgac", env_id, seed=0, backend=backend, log_folder=log_folder, device="cpu")
+    env = model.get_env()
+    assert env is not None
+    model.set_env(TimedVecEnv(env))
+    return timed_split(model, seconds)  # type: ignore[arg-type]
+
+
+def timed_split(model: CGAC, seconds: float) -> dict[str, float]:
+    """Steps/s of ``model`` (whose env is a ``TimedVecEnv``) over ``seconds`` of training, and its wall-clock split."""
+    timed_env = model.get_env()
+    assert isinstance(timed_env, TimedVecEnv)
     # Fill the window first: updates start once it holds a minibatch
-    model.learn(model.buffer_window * env.num_envs, log_interval=10**9)
+    model.learn(model.buffer_window * timed_env.num_envs, log_interval=10**9)
     timer_inference, timer_update = Timer(model.device), Timer(model.device)
     model.actor_avg.sample = timer_inference.wrap(model.actor_avg.sample)  # type: ignore[method-assign]
     model.train = timer_update.wrap(model.train)  # type: ignore[method-assign]
@@ -181,8 +199,30 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="alternating raw/collection measurements per cell")
     parser.add_argument("--no-baselines", action="store_true", help="skip SB3 PPO and SAC")
     parser.add_argument("--output", default=None, help="also write the tables to this markdown file")
+    parser.add_argument(
+        "--zoo-split",
+        nargs="+",
+        default=None,
+        metavar="ENV_ID",
+        help="only the e2e split of CGAC built from "
+        "its hyperparams/cgac.yml entry for these envs (--seconds of training each, --backends' first)",
+    )
     args = parser.parse_args()
     warnings.filterwarnings("ignore", category=UserWarning)
+    if args.zoo_split:
+        backend = args.backends[0] if args.backends != parser.get_default("backends") else "dummy"
+        print(
+            f"CGAC from hyperparams/cgac.yml, {backend} backend, {args.seconds:g} s of training, {th.get_num_threads()} "
+            "torch threads: steps/s and the split of wall-clock between env / inference / update / else"
+        )
+        for env_id in args.zoo_split:
+            split = zoo_split(env_id, args.seconds, backend)
+            print(
+                f"{env_id}: {split['sps']:,.0f} steps/s, {split['env']:.0%} / {split['inference']:.0%} / "
+                f"{split['update']:.0%} / {split['else']:.0%}",
+                flush=True,
+            )
+        return
     devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
 
     lines = [

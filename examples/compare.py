@@ -273,7 +273,9 @@ def summarise(
         threshold = float(finals[references[0]].max())
     stats: dict[str, dict[str, float]] = {}
     for run in runs:
-        frames = [frame for _, frame in results[results["run"] == run].groupby("seed")]
+        # The evaluation before training is left out: an untrained policy can score well (a motionless Ant
+        # collects its healthy reward for 1000 steps) and would count as reaching the threshold at 0 s
+        frames = [frame[frame["steps"] > 0] for _, frame in results[results["run"] == run].groupby("seed")]
         times = [first_reach(frame, threshold, "seconds") for frame in frames]
         steps = [first_reach(frame, threshold, "steps") for frame in frames]
         done = [completed[(run, seed)] for seed in range(seeds) if (run, seed) in completed]
@@ -302,15 +304,21 @@ def summarise(
     shown = [reference for reference in references if reference in stats]
     lines = [
         f"Threshold: {threshold:.1f} ({threshold_source}). "
-        "Times are medians over seeds of the training wall-clock to the first evaluation at or above it; "
-        "ratios below 1 mean faster than the reference.",
+        "Time and steps to threshold are medians over seeds of the training wall-clock and env steps at the first "
+        "evaluation at or above it (so they are only as fine as the evaluation interval); final and best return: "
+        "mean over seeds of the last and best evaluation (+/- std over seeds). The evaluation before training counts "
+        "in neither the best return nor the threshold. Ratios below 1 mean faster than the reference.",
         "",
         "| run | seeds | final return | best return | steps/s | time to threshold | steps to threshold |"
         + "".join(f" time vs {reference} |" for reference in shown),
         "| --- | --- | --- | --- | --- | --- | --- |" + " --- |" * len(shown),
     ]
     for run, s in stats.items():
-        time_text = f"{s['time'] / 60:.1f} min" if np.isfinite(s["time"]) else "not reached"
+        time_text = (
+            "not reached"
+            if not np.isfinite(s["time"])
+            else (f"{s['time']:.0f} s" if s["time"] < 120 else f"{s['time'] / 60:.1f} min")
+        )
         steps_text = f"{s['steps']:,.0f}" if np.isfinite(s["steps"]) else "-"
         lines.append(
             f"| {run} | {s['seeds']} | {s['final']:.0f} +/- {s['final_std']:.0f} | {s['best']:.0f} | {s['sps']:,.0f} "
