@@ -4,8 +4,9 @@ import sys
 # After each parallel region, torch's OpenMP (libgomp) workers spin for about 300k iterations, several ms,
 # taking the cores from a simulator's own threads (envpool) while it steps. A short spin keeps them awake
 # between the ops of an update but asleep during env steps. Measured on 2 cores (benchmarks/throughput.py,
-# tests/test_learning.py): CGAC's collection at 256 envpool envs went from 65% to 95% of envpool's own speed,
-# with the same update speed; OMP_WAIT_POLICY=PASSIVE gave 95% too but made small-network training twice as slow.
+# tests/test_learning.py): CGAC's collection at 256 envpool HalfCheetah envs went from 56-64% to 66-102% (median
+# 82%) of envpool's own speed, with the same update speed; OMP_WAIT_POLICY=PASSIVE collected as fast but made
+# small-network training twice as slow.
 # libgomp reads the setting once, when torch is loaded: it only applies if sb3_cgac is imported first, and never
 # overrides a user's own OMP_WAIT_POLICY or GOMP_SPINCOUNT.
 THREAD_SPIN_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
