@@ -3,12 +3,12 @@ Throughput of CGAC on large vectorised MuJoCo envs, measured side by side in one
 
     python benchmarks/throughput.py --output docs/throughput.md   # full table (about 15 minutes on 2 cores)
     python benchmarks/throughput.py --envs HalfCheetah-v5 --n-envs 256 --backends envpool --no-baselines
-    python benchmarks/throughput.py --zoo-split Pendulum-v1   # split of CGAC built from its YAML entry only
+    python benchmarks/throughput.py --zoo-split Pendulum-v1 --e2e-seconds 20   # split of CGAC built from its YAML entry only
 
 For each env, number of envs and backend it prints:
 - raw: vec-env steps/s with random actions (the simulator's ceiling here);
 - collect: CGAC collection-only steps/s (averaged-actor actions, buffer writes) and its ratio to raw, both
-  measured alternately on the same env and compared by medians (this machine's speed drifts by +-20%);
+  measured on the same env in alternating short chunks (this machine's speed drifts by +-20% within seconds);
 - e2e: CGAC end-to-end steps/s with the default update settings, and the split of wall-clock between env
   stepping, inference (averaged-actor sampling), updates (targets + gradient steps) and everything else;
 - buffer: rollout-buffer bytes over raw transition bytes.
@@ -36,7 +36,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
 LEGEND = """\
 raw: vec-env steps/s with random actions. collect: CGAC collection only (averaged-actor actions and buffer writes),
-measured alternately with raw on the same env, medians of 3; ratio = collect / raw. e2e: CGAC end to end with its
+measured on the same env in alternating short chunks (see the command); ratio = collect / raw. e2e: CGAC end to end with its
 default update settings (1 new step per iteration, 32-step window, batch min(4096, 32 x n_envs), 2 critic + 1 actor
 updates per step, [256, 256] networks), and the split of its wall-clock between env stepping, inference (sampling
 the averaged actor), updates (value targets and gradient steps) and everything else. buffer / raw bytes: rollout
@@ -100,19 +100,27 @@ class StopAfter(BaseCallback):
         return time.perf_counter() - self.start < self.seconds
 
 
-def rate(step: Callable[[], Any], n_envs: int, seconds: float) -> float:
-    steps, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        step()
-        steps += 1
-    return steps * n_envs / (time.perf_counter() - start)
+def alternate(steps: dict[str, Callable[[], Any]], n_envs: int, seconds: float, chunk: float) -> dict[str, float]:
+    """
+    Steps/s of each function, measured in alternating chunks of ``chunk`` seconds until each has run ``seconds``
+    in all: this machine's speed drifts by +-20% within seconds, and fine alternation gives every function the
+    same share of fast and slow moments.
+    """
+    elapsed = dict.fromkeys(steps, 0.0)
+    counts = dict.fromkeys(steps, 0)
+    while min(elapsed.values()) < seconds:
+        for name, step in steps.items():
+            start = now = time.perf_counter()
+            while now - start < chunk:
+                step()
+                counts[name] += 1
+                now = time.perf_counter()
+            elapsed[name] += now - start
+    return {name: counts[name] * n_envs / elapsed[name] for name in steps}
 
 
-def raw_and_collection(env: VecEnv, seconds: float, repeats: int) -> tuple[float, float, int, int]:
-    """
-    Raw vec-env steps/s (random actions) and CGAC collection-only steps/s, measured alternately on the same env
-    and compared by their medians: this machine's speed drifts by +-20% within seconds.
-    """
+def raw_and_collection(env: VecEnv, seconds: float, chunk: float) -> tuple[float, float, int, int]:
+    """Raw vec-env steps/s (random actions) and CGAC collection-only steps/s, measured alternately on the same env."""
     model = CGAC("MlpPolicy", env, seed=0)
     _, callback = model._setup_learn(10**12)
     callback.on_training_start(locals(), globals())
@@ -126,14 +134,11 @@ def raw_and_collection(env: VecEnv, seconds: float, repeats: int) -> tuple[float
     def collect_step() -> None:
         model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=1)
 
-    rate(raw_step, env.num_envs, 1.0)
-    rate(collect_step, env.num_envs, 1.0)
-    raws, collects = [], []
-    for _ in range(repeats):
-        raws.append(rate(raw_step, env.num_envs, seconds))
-        collects.append(rate(collect_step, env.num_envs, seconds))
+    steps = {"raw": raw_step, "collect": collect_step}
+    alternate(steps, env.num_envs, 0.5, chunk)  # warm-up
+    rates = alternate(steps, env.num_envs, seconds, chunk)
     buffer = model.rollout_buffer
-    return float(np.median(raws)), float(np.median(collects)), buffer.nbytes(), buffer.raw_transition_nbytes()
+    return rates["raw"], rates["collect"], buffer.nbytes(), buffer.raw_transition_nbytes()
 
 
 def end_to_end(env: VecEnv, seconds: float, device: str, **cgac_kwargs: Any) -> dict[str, float]:
@@ -195,8 +200,9 @@ def main() -> None:
     parser.add_argument("--envs", nargs="+", default=["HalfCheetah-v5", "Ant-v5"])
     parser.add_argument("--n-envs", nargs="+", type=int, default=[16, 64, 256, 1024])
     parser.add_argument("--backends", nargs="+", default=list(BACKEND_NAMES), choices=list(BACKEND_NAMES))
-    parser.add_argument("--seconds", type=float, default=2.0, help="length of one raw or collection measurement")
-    parser.add_argument("--repeats", type=int, default=3, help="alternating raw/collection measurements per cell")
+    parser.add_argument("--seconds", type=float, default=6.0, help="measuring time of raw and of collection, each")
+    parser.add_argument("--chunk", type=float, default=0.1, help="raw and collection alternate in chunks of this length")
+    parser.add_argument("--e2e-seconds", type=float, default=4.0, help="training time of each end-to-end measurement")
     parser.add_argument("--no-baselines", action="store_true", help="skip SB3 PPO and SAC")
     parser.add_argument("--output", default=None, help="also write the tables to this markdown file")
     parser.add_argument(
@@ -205,18 +211,18 @@ def main() -> None:
         default=None,
         metavar="ENV_ID",
         help="only the e2e split of CGAC built from "
-        "its hyperparams/cgac.yml entry for these envs (--seconds of training each, --backends' first)",
+        "its hyperparams/cgac.yml entry for these envs (--e2e-seconds of training each, --backends' first)",
     )
     args = parser.parse_args()
     warnings.filterwarnings("ignore", category=UserWarning)
     if args.zoo_split:
         backend = args.backends[0] if args.backends != parser.get_default("backends") else "dummy"
         print(
-            f"CGAC from hyperparams/cgac.yml, {backend} backend, {args.seconds:g} s of training, {th.get_num_threads()} "
+            f"CGAC from hyperparams/cgac.yml, {backend} backend, {args.e2e_seconds:g} s of training, {th.get_num_threads()} "
             "torch threads: steps/s and the split of wall-clock between env / inference / update / else"
         )
         for env_id in args.zoo_split:
-            split = zoo_split(env_id, args.seconds, backend)
+            split = zoo_split(env_id, args.e2e_seconds, backend)
             print(
                 f"{env_id}: {split['sps']:,.0f} steps/s, {split['env']:.0%} / {split['inference']:.0%} / "
                 f"{split['update']:.0%} / {split['else']:.0%}",
@@ -232,7 +238,8 @@ def main() -> None:
         "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, "
         f"{th.get_num_threads()} torch threads, devices: {', '.join(devices)}.",
-        f"Command: python benchmarks/throughput.py --seconds {args.seconds} --repeats {args.repeats}"
+        f"Command: python benchmarks/throughput.py --seconds {args.seconds:g} --chunk {args.chunk:g} "
+        f"--e2e-seconds {args.e2e_seconds:g}"
         + (f" --envs {' '.join(args.envs)}" if args.envs != parser.get_default("envs") else "")
         + (f" --n-envs {' '.join(map(str, args.n_envs))}" if args.n_envs != parser.get_default("n_envs") else "")
         + (f" --output {args.output}" if args.output else ""),
@@ -256,15 +263,15 @@ def main() -> None:
                     return make_vec_env(env_id, n_envs=n_envs, backend=backend, seed=0)
 
                 measured_env = env()
-                raw, collect, buffer_bytes, raw_bytes = raw_and_collection(measured_env, args.seconds, args.repeats)
+                raw, collect, buffer_bytes, raw_bytes = raw_and_collection(measured_env, args.seconds, args.chunk)
                 measured_env.close()
                 e2e_env = env()
-                e2e = end_to_end(e2e_env, 2 * args.seconds, "cpu")
+                e2e = end_to_end(e2e_env, args.e2e_seconds, "cpu")
                 e2e_env.close()
                 extra = ""
                 for device in devices[1:]:
                     device_env = env()
-                    extra += f" {end_to_end(device_env, 2 * args.seconds, device)['sps']:,.0f} |"
+                    extra += f" {end_to_end(device_env, args.e2e_seconds, device)['sps']:,.0f} |"
                     device_env.close()
                 row = (
                     f"| {env_id} | {n_envs} | {name} | {raw:,.0f} | {collect:,.0f} ({collect / raw:.0%}) | {e2e['sps']:,.0f} "
@@ -275,7 +282,7 @@ def main() -> None:
                 print(row, flush=True)
         if not args.no_baselines:
             for algo in ("ppo", "sac"):
-                sps, description = baseline_throughput(algo, env_id, 2 * args.seconds)
+                sps, description = baseline_throughput(algo, env_id, args.e2e_seconds)
                 row = f"| {env_id} | SB3 {algo.upper()} ({description}) | | | | {sps:,.0f} | | |"
                 lines.append(row)
                 print(row, flush=True)

@@ -156,7 +156,8 @@ class CGACRolloutBuffer:
         self.reward_ok = th.ones(shape, dtype=th.bool, device=self.device)
         self.next_values = th.zeros(shape, device=self.device)
         self.returns = th.zeros(shape, device=self.device)
-        self.weights = th.zeros(shape, device=self.device)
+        # Whether each transition takes part in the losses (the sampled weight), 1 byte each
+        self.weights = th.zeros(shape, dtype=th.bool, device=self.device)
         self.terminal_observations: list[TerminalObservations | None] = [None] * self.buffer_window
         # Observation of the envs now, i.e. the next observation of the newest step
         self.current_obs = self._zeros_obs((self.n_envs,))
@@ -283,7 +284,7 @@ class CGACRolloutBuffer:
                 next_ok[row, idx] = terminal.ok
 
         valid = self.obs_ok[slots] & self.reward_ok[slots] & (self.terminated[slots] | next_ok)
-        self.weights[slots] = valid.float()
+        self.weights[slots] = valid
         self.n_pending = 0
         self._compute_q_gae()
 
@@ -291,7 +292,7 @@ class CGACRolloutBuffer:
         order = self._chronological_slots(self.size)
         rewards, next_values = self.rewards[order], self.next_values[order]
         terminated = self.terminated[order]
-        valid = self.weights[order] > 0
+        valid = self.weights[order]
         # The trace goes on into the next step unless the episode ended here, the next transition is
         # excluded, or this is the newest step of the window
         cont = ~(terminated | self.truncated[order])
@@ -330,7 +331,7 @@ class CGACRolloutBuffer:
             observations=_index_obs(_flatten_obs(self.observations, 2), idx),
             actions=self.actions.view(-1, self.action_dim)[idx],
             returns=self.returns.view(-1)[idx],
-            weights=self.weights.view(-1)[idx],
+            weights=self.weights.view(-1)[idx].float(),
         )
 
     def nbytes(self) -> int:
