@@ -36,12 +36,13 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
 LEGEND = """\
 raw: vec-env steps/s with random actions. collect: CGAC collection only (averaged-actor actions and buffer writes),
-measured on the same env in alternating short chunks (see the command); ratio = collect / raw. e2e: CGAC end to end with its
-default update settings (1 new step per iteration, 32-step window, batch min(4096, 32 x n_envs), 2 critic + 1 actor
-updates per step, [256, 256] networks), and the split of its wall-clock between env stepping, inference (sampling
-the averaged actor), updates (value targets and gradient steps) and everything else. buffer / raw bytes: rollout
-buffer memory over the bytes of the transitions themselves (observation, action, next action, reward, two flags).
-SubprocVecEnv runs a process per env and is skipped beyond 64. The machine's speed drifts by +-20% between runs."""
+measured on the same env in alternation with raw, in short chunks (see the command); ratio = collect / raw. e2e:
+CGAC end to end with its default update settings (1 new step per iteration, 32-step window, batch
+min(4096, 32 x n_envs), 2 critic + 1 actor updates per step, [256, 256] networks), and the split of its wall-clock
+between env stepping, inference (sampling the averaged actor), updates (value targets and gradient steps) and
+everything else. buffer / raw bytes: rollout buffer memory over the bytes of the transitions themselves
+(observation, action, next action, reward, two flags). SubprocVecEnv runs a process per env and is skipped beyond
+64. The machine's speed drifts by +-20% between runs."""
 
 BACKEND_NAMES = {"dummy": "DummyVecEnv", "subproc": "SubprocVecEnv", "envpool": "envpool", "gymnasium": "gymnasium sync"}
 # SubprocVecEnv runs one process per env: beyond this, the processes alone exhaust 2 cores and 24 GiB
