@@ -22,8 +22,9 @@ def test_readme_starts_with_the_two_setup_commands():
     assert script is not None and (ROOT / script.group(1)).exists()
 
 
-def test_ci_runs_the_readme_test_command():
+def test_ci_runs_the_readme_commands():
     ci = (ROOT / ".ci" / "run").read_text()
-    match = re.search(r"^TEST_COMMAND='(.*)'$", ci, flags=re.MULTILINE)
-    assert match is not None
-    assert match.group(1) == readme_commands()[1]
+    for name, command in zip(("TRAIN_COMMAND", "TEST_COMMAND"), readme_commands()[:2], strict=True):
+        match = re.search(rf"^{name}='(.*)'$", ci, flags=re.MULTILINE)
+        assert match is not None, name
+        assert match.group(1) == command
