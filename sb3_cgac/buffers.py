@@ -39,7 +39,8 @@ def sanitize_observations(obs: NumpyObs) -> tuple[NumpyObs, np.ndarray]:
     so that no network ever sees them; the returned mask lets the buffer exclude those transitions.
 
     :param obs: Batched observations (one row per env), an array or a dict of arrays
-    :return: The (possibly copied and cleaned) observations and a boolean array, True where the row is usable
+    :return: The cleaned observations (float ones in float32, the precision of the networks and the buffer)
+        and a boolean array, True where the row is usable
     """
     if isinstance(obs, dict):
         cleaned = {key: _sanitize_array(value) for key, value in obs.items()}
@@ -51,11 +52,13 @@ def sanitize_observations(obs: NumpyObs) -> tuple[NumpyObs, np.ndarray]:
 def _sanitize_array(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if not np.issubdtype(obs.dtype, np.floating):
         return obs, np.ones(len(obs), dtype=bool)
-    # A single comparison catches NaN (always False), +-Inf and huge values
+    # A single comparison catches NaN (max is NaN, always False), +-Inf and huge values: in the common case one
+    # reduction over the batch, then a row-wise check only when something is wrong (this runs at every env step)
+    if np.abs(obs).max(initial=0.0) <= OBS_ABS_LIMIT:
+        return obs.astype(np.float32, copy=False), np.ones(len(obs), dtype=bool)
     ok: np.ndarray = (np.abs(obs.reshape(len(obs), -1)) <= OBS_ABS_LIMIT).all(axis=1)
-    if not ok.all():
-        obs = obs.copy()
-        obs[~ok] = 0
+    obs = obs.astype(np.float32)  # a copy: the caller's array is left as it is
+    obs[~ok] = 0
     return obs, ok
 
 
@@ -159,6 +162,12 @@ class CGACRolloutBuffer:
         # Whether each transition takes part in the losses (the sampled weight), 1 byte each
         self.weights = th.zeros(shape, dtype=th.bool, device=self.device)
         self.terminal_observations: list[TerminalObservations | None] = [None] * self.buffer_window
+        # Views of the per-step arrays that `add` fills from numpy at every env step
+        self._step_arrays = (
+            tuple(tensor.numpy() for tensor in (self.rewards, self.reward_ok, self.terminated, self.truncated))
+            if self.device.type == "cpu"
+            else None
+        )
         # Observation of the envs now, i.e. the next observation of the newest step
         self.current_obs = self._zeros_obs((self.n_envs,))
         self.current_obs_ok = th.ones(self.n_envs, dtype=th.bool, device=self.device)
@@ -219,9 +228,11 @@ class CGACRolloutBuffer:
         pos = self.pos
         rewards = np.asarray(rewards, dtype=np.float32)
         rewards_ok = np.isfinite(rewards)
-        if not rewards_ok.all():
+        next_obs_ok = np.asarray(next_obs_ok)
+        # Counting costs a few array operations: only done when something is not finite (rarely)
+        if not (rewards_ok.all() and next_obs_ok.all()):
             rewards = np.where(rewards_ok, rewards, 0.0).astype(np.float32)
-        self.n_nonfinite += int(np.count_nonzero(~rewards_ok | ~np.asarray(next_obs_ok)))
+            self.n_nonfinite += int(np.count_nonzero(~rewards_ok | ~next_obs_ok))
         if terminal is not None:
             self.n_nonfinite += int(terminal.env_indices.numel() - terminal.ok.sum().item())
 
@@ -229,10 +240,14 @@ class CGACRolloutBuffer:
         self.obs_ok[pos] = self.current_obs_ok
         self.actions[pos] = actions
         self.next_actions[pos] = next_actions
-        self.rewards[pos] = th.as_tensor(rewards)
-        self.reward_ok[pos] = th.as_tensor(rewards_ok)
-        self.terminated[pos] = th.as_tensor(terminated)
-        self.truncated[pos] = th.as_tensor(truncated)
+        if self._step_arrays is not None:  # CPU: numpy writes into the tensors' memory, cheaper than torch indexing
+            for array, value in zip(self._step_arrays, (rewards, rewards_ok, terminated, truncated), strict=True):
+                array[pos] = value
+        else:
+            self.rewards[pos] = th.as_tensor(rewards, device=self.device)
+            self.reward_ok[pos] = th.as_tensor(rewards_ok, device=self.device)
+            self.terminated[pos] = th.as_tensor(terminated, device=self.device)
+            self.truncated[pos] = th.as_tensor(truncated, device=self.device)
         self.terminal_observations[pos] = terminal
         self.set_current_obs(next_obs, next_obs_ok)
 

@@ -412,12 +412,18 @@ class CGAC(OnPolicyAlgorithm):
             self.num_timesteps += env.num_envs
 
             done_idx = np.flatnonzero(dones)
-            truncated = np.zeros(len(dones), dtype=bool)
-            truncated[done_idx] = [infos[idx].get("TimeLimit.truncated", False) for idx in done_idx]
-            trunc_idx = np.flatnonzero(truncated)
+            terminal = None
+            if len(done_idx) == 0:  # most steps: nothing to sort out
+                terminated = truncated = dones
+            else:
+                truncated = np.zeros(len(dones), dtype=bool)
+                truncated[done_idx] = [infos[idx].get("TimeLimit.truncated", False) for idx in done_idx]
+                terminated = dones & ~truncated
+                trunc_idx = np.flatnonzero(truncated)
+                if len(trunc_idx) > 0:
+                    terminal = self._terminal_observations(infos, trunc_idx)
 
             obs_tensor, obs_ok = self._obs_to_tensor(new_obs)
-            terminal = self._terminal_observations(infos, trunc_idx) if len(trunc_idx) > 0 else None
             with th.inference_mode():
                 # Two draws of the averaged actor at s_{t+1}: the action of the next step, and the
                 # "next action" a'_{t+1} of this transition for its value target
@@ -425,12 +431,12 @@ class CGAC(OnPolicyAlgorithm):
                 if terminal is not None:
                     next_actions[terminal.env_indices] = self.actor_avg.sample(terminal.observations, 1)[0]
 
-            rollout_buffer.add(actions, rewards, dones & ~truncated, truncated, obs_tensor, obs_ok, next_actions, terminal)
+            rollout_buffer.add(actions, rewards, terminated, truncated, obs_tensor, obs_ok, next_actions, terminal)
             self._last_obs = self._rollout_obs = new_obs  # type: ignore[assignment]
             self._last_episode_starts = dones
             self._pending_actions = next_step_actions
-            # Episode statistics only come with finished episodes
-            self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
+            if len(done_idx) > 0:  # episode statistics only come with finished episodes
+                self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
 
             callback.update_locals(locals())
             if not callback.on_step():

@@ -1,4 +1,5 @@
 from sb3_cgac import CGAC
+from sb3_cgac.buffers import OBS_ABS_LIMIT, sanitize_observations
 from sb3_cgac.callbacks import ProgressEntropySchedule
 
 import gymnasium as gym
@@ -148,6 +149,27 @@ def test_nonfinite_data_is_excluded_and_counted(tmp_path):
     assert th.isfinite(model.rollout_buffer.returns).all()
     logged = (tmp_path / "progress.csv").read_text()
     assert "rollout/nonfinite_transitions" in logged.splitlines()[0]
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_sanitize_observations(dtype):
+    clean = np.arange(12, dtype=dtype).reshape(4, 3)
+    obs, ok = sanitize_observations(clean)
+    assert obs.dtype == np.float32 and ok.all()
+    np.testing.assert_array_equal(obs, clean)
+
+    corrupt = clean.copy()
+    corrupt[1, 0], corrupt[2, 2], corrupt[3, 1] = np.nan, -np.inf, 10 * OBS_ABS_LIMIT
+    obs, ok = sanitize_observations(corrupt)
+    assert obs.dtype == np.float32
+    np.testing.assert_array_equal(ok, [True, False, False, False])
+    np.testing.assert_array_equal(obs[0], clean[0])
+    assert (obs[1:] == 0).all()
+    assert np.isnan(corrupt[1, 0]), "the caller's array must be left as it is"
+
+    obs, ok = sanitize_observations({"a": corrupt, "image": np.ones((4, 2), np.uint8)})
+    np.testing.assert_array_equal(ok, [True, False, False, False])
+    assert obs["image"].dtype == np.uint8 and obs["a"].dtype == np.float32
 
 
 def test_nonfinite_parameters_raise():

@@ -154,6 +154,31 @@ def test_actions_respect_bounds():
     assert actions.min() < 0 < actions.max()
 
 
+class BoxActionEnv(gym.Env):
+    observation_space = spaces.Box(-1, 1, (2,), np.float32)
+
+    def __init__(self, low: float, high: float):
+        super().__init__()
+        self.action_space = spaces.Box(low, high, (2,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(2, np.float32), 0.0, False, False, {}
+
+
+@pytest.mark.parametrize("low, high", [(-1.0, 1.0), (-2.0, 2.0), (0.0, 3.0)])
+def test_unscale_action(low, high):
+    # The env receives a copy: an env that clips its action in place must not alter what CGAC stores
+    policy = CGAC("MlpPolicy", BoxActionEnv(low, high), **SMALL).policy
+    scaled = np.array([[-1.0, 0.5], [1.0, 0.0]], dtype=np.float32)
+    action = policy.unscale_action(scaled)
+    assert action is not scaled and not np.shares_memory(action, scaled)
+    np.testing.assert_allclose(action, low + 0.5 * (scaled + 1.0) * (high - low), rtol=1e-6)
+
+
 class DictObsEnv(gym.Env):
     """Dict observation: a position vector and a velocity; reward for driving both to zero."""
 
