@@ -162,12 +162,6 @@ class CGACRolloutBuffer:
         # Whether each transition takes part in the losses (the sampled weight), 1 byte each
         self.weights = th.zeros(shape, dtype=th.bool, device=self.device)
         self.terminal_observations: list[TerminalObservations | None] = [None] * self.buffer_window
-        # Views of the per-step arrays that `add` fills from numpy at every env step
-        self._step_arrays = (
-            tuple(tensor.numpy() for tensor in (self.rewards, self.reward_ok, self.terminated, self.truncated))
-            if self.device.type == "cpu"
-            else None
-        )
         # Observation of the envs now, i.e. the next observation of the newest step
         self.current_obs = self._zeros_obs((self.n_envs,))
         self.current_obs_ok = th.ones(self.n_envs, dtype=th.bool, device=self.device)
@@ -240,14 +234,12 @@ class CGACRolloutBuffer:
         self.obs_ok[pos] = self.current_obs_ok
         self.actions[pos] = actions
         self.next_actions[pos] = next_actions
-        if self._step_arrays is not None:  # CPU: numpy writes into the tensors' memory, cheaper than torch indexing
-            for array, value in zip(self._step_arrays, (rewards, rewards_ok, terminated, truncated), strict=True):
-                array[pos] = value
-        else:
-            self.rewards[pos] = th.as_tensor(rewards, device=self.device)
-            self.reward_ok[pos] = th.as_tensor(rewards_ok, device=self.device)
-            self.terminated[pos] = th.as_tensor(terminated, device=self.device)
-            self.truncated[pos] = th.as_tensor(truncated, device=self.device)
+        step_storage = (self.rewards, self.reward_ok, self.terminated, self.truncated)
+        for storage, value in zip(step_storage, (rewards, rewards_ok, terminated, truncated), strict=True):
+            if self.device.type == "cpu":  # a numpy write into the tensor's memory, a few times cheaper than torch indexing
+                storage.numpy()[pos] = value
+            else:
+                storage[pos] = th.as_tensor(value, device=self.device)
         self.terminal_observations[pos] = terminal
         self.set_current_obs(next_obs, next_obs_ok)
 

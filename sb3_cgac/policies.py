@@ -208,7 +208,11 @@ class CGACPolicy(BasePolicy):
             normalize_images=normalize_images,
             squash_output=True,
         )
-        assert isinstance(self.action_space, spaces.Box)
+        if not isinstance(self.action_space, spaces.Box):
+            raise ValueError(
+                f"CGACPolicy needs a continuous (gymnasium.spaces.Box) action space, got {self.action_space}: CGAC "
+                "follows the gradient of Q through the action (paper Eq. 7)."
+            )
         self._unit_action_bounds = bool(np.all(self.action_space.low == -1.0) and np.all(self.action_space.high == 1.0))
         if net_arch is None:
             net_arch = [256, 256]

@@ -1,6 +1,7 @@
 from sb3_cgac import CGAC
 from sb3_cgac.buffers import OBS_ABS_LIMIT, sanitize_observations
 from sb3_cgac.callbacks import ProgressEntropySchedule
+from sb3_cgac.policies import CGACPolicy
 
 import gymnasium as gym
 import numpy as np
@@ -37,6 +38,11 @@ class ActionSpaceEnv(gym.Env):
 def test_discrete_action_spaces(action_space):
     with pytest.raises(ValueError, match=r"only supports continuous \(Box\) action spaces.*PPO"):
         CGAC("MlpPolicy", ActionSpaceEnv(action_space))
+
+
+def test_policy_alone_rejects_discrete_actions():
+    with pytest.raises(ValueError, match=r"CGACPolicy needs a continuous"):
+        CGACPolicy(ActionSpaceEnv.observation_space, spaces.Discrete(3), lambda _: 1e-3)
 
 
 def test_unbounded_box():
