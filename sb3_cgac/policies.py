@@ -2,7 +2,6 @@
 
 from typing import Any
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
@@ -145,7 +144,7 @@ class Actor(BasePolicy):
         """
         mean_actions, log_std = self.get_action_dist_params(obs)
         noise = th.randn((n_samples, *mean_actions.shape), device=mean_actions.device, dtype=mean_actions.dtype)
-        return th.tanh_(th.addcmul(mean_actions, log_std.exp(), noise))
+        return th.tanh(mean_actions + log_std.exp() * noise)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self(observation, deterministic)
@@ -213,7 +212,6 @@ class CGACPolicy(BasePolicy):
                 f"CGACPolicy needs a continuous (gymnasium.spaces.Box) action space, got {self.action_space}: CGAC "
                 "follows the gradient of Q through the action (paper Eq. 7)."
             )
-        self._unit_action_bounds = bool(np.all(self.action_space.low == -1.0) and np.all(self.action_space.high == 1.0))
         if net_arch is None:
             net_arch = [256, 256]
         actor_arch, critic_arch = get_actor_critic_arch(net_arch)
@@ -286,18 +284,6 @@ class CGACPolicy(BasePolicy):
             )
         )
         return data
-
-    def unscale_action(self, scaled_action: np.ndarray) -> np.ndarray:
-        """
-        Rescale the action from [-1, 1] to [low, high] (a copy where the bounds already are [-1, 1], as in most
-        continuous-control envs: this runs at every env step of every env).
-
-        :param scaled_action: Action to un-scale
-        :return: Action in the bounds of the action space
-        """
-        if self._unit_action_bounds:
-            return np.array(scaled_action)
-        return super().unscale_action(scaled_action)
 
     def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)

@@ -171,7 +171,7 @@ class BoxActionEnv(gym.Env):
 
 @pytest.mark.parametrize("low, high", [(-1.0, 1.0), (-2.0, 2.0), (0.0, 3.0)])
 def test_unscale_action(low, high):
-    # The env receives a copy: an env that clips its action in place must not alter what CGAC stores
+    # The env receives a new array: an env that clips its action in place must not alter the actions CGAC stores
     policy = CGAC("MlpPolicy", BoxActionEnv(low, high), **SMALL).policy
     scaled = np.array([[-1.0, 0.5], [1.0, 0.0]], dtype=np.float32)
     action = policy.unscale_action(scaled)
