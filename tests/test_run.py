@@ -154,7 +154,9 @@ def test_actions_respect_bounds():
     assert actions.min() < 0 < actions.max()
 
 
-class BoxActionEnv(gym.Env):
+class InPlaceActionEnv(gym.Env):
+    """Overwrites the action array it is given with the lower bound, as an env that clips in place would."""
+
     observation_space = spaces.Box(-1, 1, (2,), np.float32)
 
     def __init__(self, low: float, high: float):
@@ -166,16 +168,21 @@ class BoxActionEnv(gym.Env):
         return np.zeros(2, np.float32), {}
 
     def step(self, action):
+        action[...] = self.action_space.low
         return np.zeros(2, np.float32), 0.0, False, False, {}
 
 
 @pytest.mark.parametrize("low, high", [(-1.0, 1.0), (-2.0, 2.0), (0.0, 3.0)])
-def test_unscale_action(low, high):
-    # The env receives a new array: an env that clips its action in place must not alter the actions CGAC stores
-    policy = CGAC("MlpPolicy", BoxActionEnv(low, high), **SMALL).policy
+def test_env_gets_its_own_action_array(low, high):
+    # An env writing into its action must not alter the (squashed) actions CGAC stores
+    env = make_vec_env(InPlaceActionEnv, n_envs=2, env_kwargs=dict(low=low, high=high))
+    model = CGAC("MlpPolicy", env, **SMALL)
+    model.learn(20)  # 10 steps of 2 envs, one per iteration
+    stored = model.rollout_buffer.actions[:10]
+    assert (stored.abs() < 1).all() and stored.std() > 0
     scaled = np.array([[-1.0, 0.5], [1.0, 0.0]], dtype=np.float32)
-    action = policy.unscale_action(scaled)
-    assert action is not scaled and not np.shares_memory(action, scaled)
+    action = model.policy.unscale_action(scaled)
+    assert not np.shares_memory(action, scaled)
     np.testing.assert_allclose(action, low + 0.5 * (scaled + 1.0) * (high - low), rtol=1e-6)
 
 
