@@ -32,3 +32,16 @@ def test_throughput_table_tiny_budget(tmp_path):
     for row, algo in zip(rows[2:], ("PPO", "SAC"), strict=True):
         cells = [cell.strip() for cell in row.strip("|").split("|")]
         assert cells[1].startswith(f"SB3 {algo} (zoo settings") and float(cells[5].replace(",", "")) > 0
+
+
+def test_collection_profile_tiny_budget():
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "collection_profile.py"), "--env", "Hopper-v5", "--n-envs", "4",
+         "--calls", "20", "--seconds", "0.2", "--chunk", "0.05"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = result.stdout.splitlines()
+    assert sum("torch thread" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 4
+    for name in ("raw", "bare loop", "CGAC collection"):
+        assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in lines), name

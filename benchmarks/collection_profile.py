@@ -1,0 +1,108 @@
+"""
+Where CGAC's collection step loses time against the raw env step (the companion of throughput.py).
+
+    python benchmarks/collection_profile.py                                  # envpool HalfCheetah-v5, 256 envs
+    python benchmarks/collection_profile.py --env Ant-v5 --n-envs 1024 --backend envpool
+
+It prints, measured in one run:
+1. the averaged actor's forward pass (two draws, as in collection) on its own and right after an env step,
+   with torch's default threads and with one thread (medians over many calls);
+2. steps/s of the raw env (random actions), of a bare loop (env step, float32 conversion, the forward pass and
+   numpy writes, nothing else) and of CGAC's real collection step, alternating in short chunks on the same env,
+   as ratios to raw. The bare loop bounds what trimming the bookkeeping around the forward pass can give.
+"""
+
+import argparse
+import time
+from collections.abc import Callable
+from typing import Any
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import make_vec_env
+
+import numpy as np
+import torch as th
+from throughput import alternate
+
+
+def forward_timings(model: CGAC, env: Any, actions: np.ndarray, calls: int) -> dict[str, float]:
+    """Median seconds of one forward pass, alone and right after an env step, with the default and one thread."""
+    obs = th.as_tensor(env.reset(), dtype=th.float32)
+    threads = th.get_num_threads()
+    timings: dict[str, list[float]] = {}
+    for n_threads in (threads, 1):
+        for after_step in (False, True):
+            th.set_num_threads(n_threads)
+            name = f"{'after an env step' if after_step else 'alone'}, {n_threads} torch thread{'s' * (n_threads > 1)}"
+            timings[name] = []
+            for call in range(calls):
+                if after_step:
+                    obs = th.as_tensor(env.step(actions[call % len(actions)])[0], dtype=th.float32)
+                start = time.perf_counter()
+                with th.inference_mode():
+                    model.actor_avg.sample(obs, 2)
+                timings[name].append(time.perf_counter() - start)
+    th.set_num_threads(threads)
+    return {name: float(np.median(values[calls // 10 :])) for name, values in timings.items()}
+
+
+def step_functions(model: CGAC, env: Any, actions: np.ndarray) -> dict[str, Callable[[], None]]:
+    _, callback = model._setup_learn(10**12)
+    callback.on_training_start({}, {})
+    counter = iter(range(10**12))
+    window = 32
+    obs_store = np.zeros((window, env.num_envs, *env.observation_space.shape), dtype=np.float32)
+    reward_store = np.zeros((window, env.num_envs), dtype=np.float32)
+    done_store = np.zeros((window, env.num_envs), dtype=bool)
+    action_store = np.zeros((window, env.num_envs, *env.action_space.shape), dtype=np.float32)
+    pending = [np.zeros((env.num_envs, *env.action_space.shape), dtype=np.float32)]
+
+    def raw() -> None:
+        env.step(actions[next(counter) % len(actions)])
+
+    def bare() -> None:
+        obs, rewards, dones, _ = env.step(pending[0])
+        pos = next(counter) % window
+        obs_store[pos] = obs
+        with th.inference_mode():
+            draws = model.actor_avg.sample(th.from_numpy(obs_store[pos]), 2).numpy()
+        action_store[pos], reward_store[pos], done_store[pos] = pending[0], rewards, dones
+        pending[0] = draws[0]
+
+    def collect() -> None:
+        model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=1)
+
+    return {"raw": raw, "bare loop": bare, "CGAC collection": collect}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="HalfCheetah-v5")
+    parser.add_argument("--n-envs", type=int, default=256)
+    parser.add_argument("--backend", default="envpool")
+    parser.add_argument("--calls", type=int, default=500, help="forward passes per timing of part 1")
+    parser.add_argument("--seconds", type=float, default=6.0, help="measuring time of each loop in part 2")
+    parser.add_argument("--chunk", type=float, default=0.1, help="the loops alternate in chunks of this length")
+    args = parser.parse_args()
+
+    env = make_vec_env(args.env, n_envs=args.n_envs, backend=args.backend, seed=0)
+    model = CGAC("MlpPolicy", env, seed=0)
+    action_shape = env.action_space.shape or ()
+    actions = np.random.default_rng(0).uniform(-1, 1, (16, env.num_envs, *action_shape)).astype(np.float32)
+    print(f"{args.env}, {args.n_envs} envs, {args.backend} backend, {th.get_num_threads()} torch threads")
+
+    print("1. averaged-actor forward pass (two draws), median ms:")
+    for name, seconds in forward_timings(model, env, actions, args.calls).items():
+        print(f"   {name}: {seconds * 1e3:.3f}")
+
+    print(f"2. steps/s, alternating in {args.chunk:g}-s chunks, {args.seconds:g} s each:")
+    steps = step_functions(model, env, actions)
+    alternate(steps, env.num_envs, 0.5, args.chunk)  # warm-up
+    rates = alternate(steps, env.num_envs, args.seconds, args.chunk)
+    for name, rate in rates.items():
+        print(f"   {name}: {rate:,.0f} ({rate / rates['raw']:.0%} of raw)")
+    env.close()
+
+
+if __name__ == "__main__":
+    main()
