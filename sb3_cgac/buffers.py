@@ -85,6 +85,15 @@ def _flatten_obs(obs: TensorObs, n_leading: int) -> TensorObs:
     return flatten(obs)
 
 
+def _write_row(storage: th.Tensor, index: int | slice, value: th.Tensor | np.ndarray) -> None:
+    # Runs several times per env step: on CPU a numpy write into the tensor's memory costs a fraction of torch's
+    # indexing and dispatch (the first torch ops after a blocking env step are slow, their code is out of cache)
+    if storage.device.type == "cpu":
+        storage.numpy()[index] = value.numpy() if isinstance(value, th.Tensor) else value
+    else:
+        storage[index] = th.as_tensor(value, device=storage.device)
+
+
 def _nbytes(obs: TensorObs) -> int:
     values = obs.values() if isinstance(obs, dict) else [obs]
     return sum(value.element_size() * value.nelement() for value in values)
@@ -180,10 +189,10 @@ class CGACRolloutBuffer:
         if isinstance(dst, dict):
             assert isinstance(src, dict)
             for key, value in dst.items():
-                value.copy_(src[key])
+                _write_row(value, slice(None), src[key])
         else:
             assert isinstance(src, th.Tensor)
-            dst.copy_(src)
+            _write_row(dst, slice(None), src)
 
     def set_current_obs(self, obs: TensorObs, obs_ok: np.ndarray) -> None:
         """
@@ -193,7 +202,7 @@ class CGACRolloutBuffer:
         :param obs_ok: Which rows were finite before sanitizing
         """
         self._copy_obs(self.current_obs, obs)
-        self.current_obs_ok.copy_(th.as_tensor(obs_ok))
+        _write_row(self.current_obs_ok, slice(None), obs_ok)
 
     def add(
         self,
@@ -230,16 +239,20 @@ class CGACRolloutBuffer:
         if terminal is not None:
             self.n_nonfinite += int(terminal.env_indices.numel() - terminal.ok.sum().item())
 
-        self._copy_obs(_index_obs(self.observations, pos), self.current_obs)
-        self.obs_ok[pos] = self.current_obs_ok
-        self.actions[pos] = actions
-        self.next_actions[pos] = next_actions
-        step_storage = (self.rewards, self.reward_ok, self.terminated, self.truncated)
-        for storage, value in zip(step_storage, (rewards, rewards_ok, terminated, truncated), strict=True):
-            if self.device.type == "cpu":  # a numpy write into the tensor's memory, a few times cheaper than torch indexing
-                storage.numpy()[pos] = value
-            else:
-                storage[pos] = th.as_tensor(value, device=self.device)
+        if isinstance(self.observations, dict):
+            assert isinstance(self.current_obs, dict)
+            for key, value in self.observations.items():
+                _write_row(value, pos, self.current_obs[key])
+        else:
+            assert isinstance(self.current_obs, th.Tensor)
+            _write_row(self.observations, pos, self.current_obs)
+        _write_row(self.obs_ok, pos, self.current_obs_ok)
+        _write_row(self.actions, pos, actions)
+        _write_row(self.next_actions, pos, next_actions)
+        _write_row(self.rewards, pos, rewards)
+        _write_row(self.reward_ok, pos, rewards_ok)
+        _write_row(self.terminated, pos, terminated)
+        _write_row(self.truncated, pos, truncated)
         self.terminal_observations[pos] = terminal
         self.set_current_obs(next_obs, next_obs_ok)
 
