@@ -28,6 +28,7 @@ def main() -> None:
         "MlpPolicy",
         env,
         learning_rate=2e-3,
+        gamma=0.98,  # shorter horizon: with 0.99, 3 of 10 seeds did not reach -200 within 300k steps
         critic_updates_per_step=4,
         tau=0.02,  # target critic (paper tau_Q)
         policy_tau=0.05,  # averaged actor (paper tau_pi), faster than the paper's 0.001 for this small problem

@@ -24,7 +24,7 @@ def zoo_hyperparams(env_id: str) -> tuple[int, int, dict]:
 
 
 def test_pendulum_reaches_minus_200():
-    """Budget: 250k steps (the zoo entry reaches -200 at 80k-140k steps for seeds 0-2)."""
+    """Budget: 250k steps (the zoo entry reaches -200 at 50k-160k steps for seeds 0-9, at 110k for seed 0)."""
     threshold, budget = -200.0, 250_000
     n_envs, _, kwargs = zoo_hyperparams("Pendulum-v1")
     env = make_vec_env("Pendulum-v1", n_envs=n_envs, seed=0)
@@ -41,8 +41,9 @@ def test_pendulum_reaches_minus_200():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
 def test_pendulum_other_seeds(seed):
+    """Seed 5 did not learn in 300k steps with gamma 0.99 (the entry now has 0.98): a guard against a fragile entry."""
     n_envs, _, kwargs = zoo_hyperparams("Pendulum-v1")
     eval_env = make_vec_env("Pendulum-v1", n_envs=10, seed=1000)
     stop = StopTrainingOnRewardThreshold(reward_threshold=-200.0)
