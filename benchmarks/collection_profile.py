@@ -6,7 +6,8 @@ Where CGAC's collection step loses time against the raw env step (the companion 
 
 It prints, measured in one run:
 1. the averaged actor's forward pass (two draws, as in collection) on its own and right after an env step,
-   with torch's default threads and with one thread (medians over many calls);
+   with torch's default threads and with one thread (medians over many calls), and the same for 20 small torch
+   ops, whose time is all dispatch overhead (it shows what running from cold caches costs per torch call);
 2. steps/s of the raw env (random actions), of a bare loop (env step, float32 conversion, the forward pass and
    numpy writes, nothing else) and of CGAC's real collection step, alternating in short chunks on the same env,
    as ratios to raw. The bare loop bounds what trimming the bookkeeping around the forward pass can give.
@@ -26,7 +27,7 @@ from throughput import alternate
 
 
 def forward_timings(model: CGAC, env: Any, actions: np.ndarray, calls: int) -> dict[str, float]:
-    """Median seconds of one forward pass, alone and right after an env step, with the default and one thread."""
+    """Median seconds of one forward pass (and of 20 small ops), alone and right after an env step."""
     obs = th.as_tensor(env.reset(), dtype=th.float32)
     threads = th.get_num_threads()
     timings: dict[str, list[float]] = {}
@@ -43,6 +44,18 @@ def forward_timings(model: CGAC, env: Any, actions: np.ndarray, calls: int) -> d
                     model.actor_avg.sample(obs, 2)
                 timings[name].append(time.perf_counter() - start)
     th.set_num_threads(threads)
+    small = th.zeros(8)
+    for after_step in (False, True):
+        name = f"20 small torch ops, {'after an env step' if after_step else 'alone'}"
+        timings[name] = []
+        for call in range(calls):
+            if after_step:
+                env.step(actions[call % len(actions)])
+            start = time.perf_counter()
+            value = small
+            for _ in range(20):
+                value = value + 1.0
+            timings[name].append(time.perf_counter() - start)
     return {name: float(np.median(values[calls // 10 :])) for name, values in timings.items()}
 
 
@@ -91,7 +104,7 @@ def main() -> None:
     actions = np.random.default_rng(0).uniform(-1, 1, (16, env.num_envs, *action_shape)).astype(np.float32)
     print(f"{args.env}, {args.n_envs} envs, {args.backend} backend, {th.get_num_threads()} torch threads")
 
-    print("1. averaged-actor forward pass (two draws), median ms:")
+    print("1. averaged-actor forward pass (two draws) and 20 small torch ops, median ms:")
     for name, seconds in forward_timings(model, env, actions, args.calls).items():
         print(f"   {name}: {seconds * 1e3:.3f}")
 

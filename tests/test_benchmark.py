@@ -43,5 +43,6 @@ def test_collection_profile_tiny_budget():
     assert result.returncode == 0, result.stderr[-3000:]
     lines = result.stdout.splitlines()
     assert sum("torch thread" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 4
+    assert sum("small torch ops" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 2
     for name in ("raw", "bare loop", "CGAC collection"):
         assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in lines), name
