@@ -185,14 +185,15 @@ class CGACRolloutBuffer:
     def n_transitions(self) -> int:
         return self.size * self.n_envs
 
-    def _copy_obs(self, dst: TensorObs, src: TensorObs) -> None:
-        if isinstance(dst, dict):
-            assert isinstance(src, dict)
-            for key, value in dst.items():
-                _write_row(value, slice(None), src[key])
+    @staticmethod
+    def _write_obs(storage: TensorObs, index: int | slice, obs: TensorObs) -> None:
+        if isinstance(storage, dict):
+            assert isinstance(obs, dict)
+            for key, value in storage.items():
+                _write_row(value, index, obs[key])
         else:
-            assert isinstance(src, th.Tensor)
-            _write_row(dst, slice(None), src)
+            assert isinstance(obs, th.Tensor)
+            _write_row(storage, index, obs)
 
     def set_current_obs(self, obs: TensorObs, obs_ok: np.ndarray) -> None:
         """
@@ -201,7 +202,7 @@ class CGACRolloutBuffer:
         :param obs: Sanitized observations, one row per env
         :param obs_ok: Which rows were finite before sanitizing
         """
-        self._copy_obs(self.current_obs, obs)
+        self._write_obs(self.current_obs, slice(None), obs)
         _write_row(self.current_obs_ok, slice(None), obs_ok)
 
     def add(
@@ -239,13 +240,7 @@ class CGACRolloutBuffer:
         if terminal is not None:
             self.n_nonfinite += int(terminal.env_indices.numel() - terminal.ok.sum().item())
 
-        if isinstance(self.observations, dict):
-            assert isinstance(self.current_obs, dict)
-            for key, value in self.observations.items():
-                _write_row(value, pos, self.current_obs[key])
-        else:
-            assert isinstance(self.current_obs, th.Tensor)
-            _write_row(self.observations, pos, self.current_obs)
+        self._write_obs(self.observations, pos, self.current_obs)
         _write_row(self.obs_ok, pos, self.current_obs_ok)
         _write_row(self.actions, pos, actions)
         _write_row(self.next_actions, pos, next_actions)
