@@ -10,10 +10,17 @@ It prints, measured in one run:
    ops, whose time is all dispatch overhead (it shows what running from cold caches costs per torch call);
 2. steps/s of the raw env (random actions), of a bare loop (env step, float32 conversion, the forward pass and
    numpy writes, nothing else) and of CGAC's real collection step, alternating in short chunks on the same env,
-   as ratios to raw. The bare loop bounds what trimming the bookkeeping around the forward pass can give.
+   as ratios to raw. The bare loop bounds what trimming the bookkeeping around the forward pass can give;
+3. (envpool backend) envpool's own API, alternating in chunks: raw with uniform actions, raw with a bank of the
+   averaged actor's actions (the simulator's cost depends on the actions), the synchronous loop (step, forward)
+   and an asynchronous one (envpool's batch_size = n_envs / 2, one torch thread) whose forward pass of one half
+   overlaps the simulation of the other. The asynchronous loop shows what overlapping inference with simulation
+   could give; CGAC cannot use it as is, because envpool's recv hands back whichever envs finish first, so the
+   envs drift apart by a step or two (printed), while the on-policy window stores every env at the same step.
 """
 
 import argparse
+import os
 import time
 from collections.abc import Callable
 from typing import Any
@@ -88,6 +95,94 @@ def step_functions(model: CGAC, env: Any, actions: np.ndarray) -> dict[str, Call
     return {"raw": raw, "bare loop": bare, "CGAC collection": collect}
 
 
+class EnvPoolLoops:
+    """Part 3: loops over envpool's own API (no adapter, no buffer), each run for a chunk of time."""
+
+    def __init__(self, model: CGAC, env_id: str, n_envs: int, num_threads: int):
+        import envpool
+
+        self.actor = model.actor_avg
+        self.pool = envpool.make_gymnasium(env_id, num_envs=n_envs, num_threads=num_threads, seed=0)
+        self.async_pool = envpool.make_gymnasium(
+            env_id, num_envs=n_envs, batch_size=n_envs // 2, num_threads=num_threads, seed=1
+        )
+        action_shape = self.pool.action_space.shape
+        self.uniform = np.random.default_rng(0).uniform(-1, 1, (16, n_envs, *action_shape)).astype(np.float32)
+        self.obs = self.pool.reset()[0]
+        self.policy_bank = np.stack([self.step_with_actor() for _ in range(16)])  # actions met along the way
+        self.async_pool.async_reset()
+        self.step_counts = np.zeros(n_envs, dtype=np.int64)
+        self.pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self.calls = 0
+
+    def actions(self, obs: np.ndarray) -> np.ndarray:
+        with th.inference_mode():
+            return self.actor.sample(th.as_tensor(obs, dtype=th.float32), 2)[0].numpy()
+
+    def step_with_actor(self) -> np.ndarray:
+        actions = self.actions(self.obs)
+        self.obs = self.pool.step(actions)[0]
+        return actions
+
+    def run(self, loop: str, seconds: float) -> int:
+        """Env steps done by ``loop`` in ``seconds``."""
+        if loop == "async":
+            return self.run_async(seconds)
+        end, steps = time.perf_counter() + seconds, 0
+        while time.perf_counter() < end:
+            self.calls += 1
+            if loop == "raw, uniform actions":
+                self.pool.step(self.uniform[self.calls % 16])
+            elif loop == "raw, the actor's actions":
+                self.pool.step(self.policy_bank[self.calls % 16])
+            else:
+                self.step_with_actor()
+            steps += len(self.obs)
+        return steps
+
+    def run_async(self, seconds: float) -> int:
+        """The asynchronous loop: two halves in flight; at the end it drains them, so no env steps behind it."""
+        end, steps = time.perf_counter() + seconds, 0
+        threads = th.get_num_threads()
+        th.set_num_threads(1)  # the other core simulates meanwhile
+        for actions, env_ids in self.pending:
+            self.async_pool.send(actions, env_ids)
+        in_flight, self.pending = len(self.pending) or 2, []  # 2: both halves, from async_reset
+        while in_flight:
+            obs, *_, info = self.async_pool.recv()
+            env_ids = info["env_id"]
+            self.step_counts[env_ids] += 1
+            steps += len(env_ids)
+            if time.perf_counter() < end:
+                self.async_pool.send(self.actions(obs), env_ids)
+            else:  # keep the actions for the next chunk
+                self.pending.append((self.actions(obs), env_ids))
+                in_flight -= 1
+        th.set_num_threads(threads)
+        return steps
+
+
+def envpool_loops(model: CGAC, env_id: str, n_envs: int, seconds: float, chunk: float) -> None:
+    loops = EnvPoolLoops(model, env_id, n_envs, num_threads=os.cpu_count() or 1)
+    names = ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "async")
+    steps = dict.fromkeys(names, 0)
+    elapsed = dict.fromkeys(names, 0.0)
+    for name in names:  # warm-up
+        loops.run(name, chunk)
+    loops.step_counts[:] = 0
+    while min(elapsed.values()) < seconds:
+        for name in names:
+            start = time.perf_counter()
+            steps[name] += loops.run(name, chunk)
+            elapsed[name] += time.perf_counter() - start
+    raw = steps[names[0]] / elapsed[names[0]]
+    for name in names:
+        rate = steps[name] / elapsed[name]
+        print(f"   {name}: {rate:,.0f} ({rate / raw:.0%} of raw)")
+    drift = loops.step_counts.max() - loops.step_counts.min()
+    print(f"   async: the envs' step counts spread over {drift} steps (the on-policy window needs 0)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="HalfCheetah-v5")
@@ -114,6 +209,11 @@ def main() -> None:
     rates = alternate(steps, env.num_envs, args.seconds, args.chunk)
     for name, rate in rates.items():
         print(f"   {name}: {rate:,.0f} ({rate / rates['raw']:.0%} of raw)")
+    if args.backend == "envpool" and args.n_envs % 2 == 1:
+        print("3. envpool's own API: skipped, the asynchronous loop steps half the envs at a time (needs an even --n-envs)")
+    elif args.backend == "envpool":
+        print(f"3. envpool's own API, steps/s, alternating in {args.chunk:g}-s chunks, {args.seconds:g} s each:")
+        envpool_loops(model, args.env, args.n_envs, args.seconds, args.chunk)
     env.close()
 
 

@@ -46,3 +46,7 @@ def test_collection_profile_tiny_budget():
     assert sum("small torch ops" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 2
     for name in ("raw", "bare loop", "CGAC collection"):
         assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in lines), name
+    part3 = lines[next(i for i, line in enumerate(lines) if line.startswith("3. envpool's own API")) :]
+    for name in ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "async"):
+        assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in part3), name
+    assert any("step counts spread over" in line for line in part3)
