@@ -163,7 +163,7 @@ class EnvPoolLoops:
 
 
 def envpool_loops(model: CGAC, env_id: str, n_envs: int, seconds: float, chunk: float) -> None:
-    loops = EnvPoolLoops(model, env_id, n_envs, num_threads=os.cpu_count() or 1)
+    loops = EnvPoolLoops(model, env_id, n_envs, num_threads=min(os.cpu_count() or 1, n_envs // 2))
     names = ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "async")
     steps = dict.fromkeys(names, 0)
     elapsed = dict.fromkeys(names, 0.0)
@@ -189,7 +189,7 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=256)
     parser.add_argument("--backend", default="envpool")
     parser.add_argument("--calls", type=int, default=500, help="forward passes per timing of part 1")
-    parser.add_argument("--seconds", type=float, default=6.0, help="measuring time of each loop in part 2")
+    parser.add_argument("--seconds", type=float, default=6.0, help="measuring time of each loop in parts 2 and 3")
     parser.add_argument("--chunk", type=float, default=0.1, help="the loops alternate in chunks of this length")
     args = parser.parse_args()
 
