@@ -5,12 +5,14 @@ Where CGAC's collection step loses time against the raw env step (the companion 
     python benchmarks/collection_profile.py --env Ant-v5 --n-envs 1024 --backend envpool
 
 It prints, measured in one run:
-1. the averaged actor's forward pass (two draws, as in collection) on its own and right after an env step,
-   with torch's default threads and with one thread (medians over many calls), and the same for 20 small torch
-   ops, whose time is all dispatch overhead (it shows what running from cold caches costs per torch call);
+1. the averaged actor's forward pass (two draws, as in collection) on its own, right after an env step and
+   after 5 ms with the cores idle (no env step), with torch's default threads and with one thread (medians over
+   many calls), and the same for 20 small torch ops, whose time is all dispatch overhead (it shows what running
+   from cold caches costs per torch call; the idle case shows what waking idle cores costs, large on some VMs);
 2. steps/s of the raw env (random actions), of a bare loop (env step, float32 conversion, the forward pass and
    numpy writes, nothing else) and of CGAC's real collection step, alternating in short chunks on the same env,
-   as ratios to raw. The bare loop bounds what trimming the bookkeeping around the forward pass can give;
+   as ratios to raw, and the mean time of the env step inside each (the simulator itself runs slower right after
+   inference). The bare loop bounds what trimming the bookkeeping around the forward pass can give;
 3. (envpool backend) envpool's own API, alternating in chunks: raw with uniform actions, raw with a bank of the
    averaged actor's actions (the simulator's cost depends on the actions), the synchronous loop (step, forward)
    and an asynchronous one (envpool's batch_size = n_envs / 2, one torch thread) whose forward pass of one half
@@ -30,22 +32,24 @@ from sb3_cgac.vec_env import make_vec_env
 
 import numpy as np
 import torch as th
-from throughput import alternate
+from throughput import TimedVecEnv, alternate
 
 
 def forward_timings(model: CGAC, env: Any, actions: np.ndarray, calls: int) -> dict[str, float]:
-    """Median seconds of one forward pass (and of 20 small ops), alone and right after an env step."""
+    """Median seconds of one forward pass (and of 20 small ops): alone, right after an env step, after 5 ms idle."""
     obs = th.as_tensor(env.reset(), dtype=th.float32)
     threads = th.get_num_threads()
     timings: dict[str, list[float]] = {}
     for n_threads in (threads, 1):
-        for after_step in (False, True):
+        for before in ("alone", "after an env step", "after 5 ms idle"):
             th.set_num_threads(n_threads)
-            name = f"{'after an env step' if after_step else 'alone'}, {n_threads} torch thread{'s' * (n_threads > 1)}"
+            name = f"{before}, {n_threads} torch thread{'s' * (n_threads > 1)}"
             timings[name] = []
             for call in range(calls):
-                if after_step:
+                if before == "after an env step":
                     obs = th.as_tensor(env.step(actions[call % len(actions)])[0], dtype=th.float32)
+                elif before == "after 5 ms idle":
+                    time.sleep(0.005)  # as long as a step of 256 HalfCheetah envs, but with the cores idle
                 start = time.perf_counter()
                 with th.inference_mode():
                     model.actor_avg.sample(obs, 2)
@@ -66,33 +70,54 @@ def forward_timings(model: CGAC, env: Any, actions: np.ndarray, calls: int) -> d
     return {name: float(np.median(values[calls // 10 :])) for name, values in timings.items()}
 
 
-def step_functions(model: CGAC, env: Any, actions: np.ndarray) -> dict[str, Callable[[], None]]:
-    _, callback = model._setup_learn(10**12)
-    callback.on_training_start({}, {})
-    counter = iter(range(10**12))
-    window = 32
-    obs_store = np.zeros((window, env.num_envs, *env.observation_space.shape), dtype=np.float32)
-    reward_store = np.zeros((window, env.num_envs), dtype=np.float32)
-    done_store = np.zeros((window, env.num_envs), dtype=bool)
-    action_store = np.zeros((window, env.num_envs, *env.action_space.shape), dtype=np.float32)
-    pending = [np.zeros((env.num_envs, *env.action_space.shape), dtype=np.float32)]
+class StepFunctions:
+    """Part 2's loops on one env, each with the time it spends inside the env's step (the simulator's share)."""
 
-    def raw() -> None:
-        env.step(actions[next(counter) % len(actions)])
+    def __init__(self, model: CGAC, env: Any, actions: np.ndarray):
+        self.model, self.env, self.actions = model, TimedVecEnv(env), actions
+        _, self.callback = model._setup_learn(10**12)
+        self.callback.on_training_start({}, {})
+        self.calls = 0
+        window = 32
+        self.obs_store = np.zeros((window, env.num_envs, *env.observation_space.shape), dtype=np.float32)
+        self.reward_store = np.zeros((window, env.num_envs), dtype=np.float32)
+        self.done_store = np.zeros((window, env.num_envs), dtype=bool)
+        self.action_store = np.zeros((window, env.num_envs, *env.action_space.shape), dtype=np.float32)
+        self.pending = np.zeros((env.num_envs, *env.action_space.shape), dtype=np.float32)
+        self.functions = {"raw": self.raw, "bare loop": self.bare, "CGAC collection": self.collect}
+        self.env_seconds = dict.fromkeys(self.functions, 0.0)
+        self.env_calls = dict.fromkeys(self.functions, 0)
 
-    def bare() -> None:
-        obs, rewards, dones, _ = env.step(pending[0])
-        pos = next(counter) % window
-        obs_store[pos] = obs
+    def raw(self) -> None:
+        self.calls += 1
+        self.env.step(self.actions[self.calls % len(self.actions)])
+
+    def bare(self) -> None:
+        obs, rewards, dones, _ = self.env.step(self.pending)
+        self.calls += 1
+        pos = self.calls % len(self.obs_store)
+        self.obs_store[pos] = obs
         with th.inference_mode():
-            draws = model.actor_avg.sample(th.from_numpy(obs_store[pos]), 2).numpy()
-        action_store[pos], reward_store[pos], done_store[pos] = pending[0], rewards, dones
-        pending[0] = draws[0]
+            draws = self.model.actor_avg.sample(th.from_numpy(self.obs_store[pos]), 2).numpy()
+        self.action_store[pos], self.reward_store[pos], self.done_store[pos] = self.pending, rewards, dones
+        self.pending = draws[0]
 
-    def collect() -> None:
-        model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=1)
+    def collect(self) -> None:
+        self.model.collect_rollouts(self.env, self.callback, self.model.rollout_buffer, n_rollout_steps=1)
 
-    return {"raw": raw, "bare loop": bare, "CGAC collection": collect}
+    def timed(self) -> dict[str, Callable[[], None]]:
+        """The loops, each adding its env-step time to ``env_seconds``."""
+
+        def timed_function(name: str) -> Callable[[], None]:
+            def step() -> None:
+                start = self.env.seconds
+                self.functions[name]()
+                self.env_seconds[name] += self.env.seconds - start
+                self.env_calls[name] += 1
+
+            return step
+
+        return {name: timed_function(name) for name in self.functions}
 
 
 class EnvPoolLoops:
@@ -204,11 +229,15 @@ def main() -> None:
         print(f"   {name}: {seconds * 1e3:.3f}")
 
     print(f"2. steps/s, alternating in {args.chunk:g}-s chunks, {args.seconds:g} s each:")
-    steps = step_functions(model, env, actions)
-    alternate(steps, env.num_envs, 0.5, args.chunk)  # warm-up
-    rates = alternate(steps, env.num_envs, args.seconds, args.chunk)
+    loops = StepFunctions(model, env, actions)
+    alternate(loops.timed(), env.num_envs, 0.5, args.chunk)  # warm-up
+    loops.env_seconds, loops.env_calls = dict.fromkeys(loops.functions, 0.0), dict.fromkeys(loops.functions, 0)
+    rates = alternate(loops.timed(), env.num_envs, args.seconds, args.chunk)
     for name, rate in rates.items():
         print(f"   {name}: {rate:,.0f} ({rate / rates['raw']:.0%} of raw)")
+    print("   mean ms per env step, in the same chunks (the simulator slows down after inference):")
+    for name in rates:
+        print(f"   env step in {name}: {loops.env_seconds[name] / loops.env_calls[name] * 1e3:.3f}")
     if args.backend == "envpool" and args.n_envs % 2 == 1:
         print("3. envpool's own API: skipped, the asynchronous loop steps half the envs at a time (needs an even --n-envs)")
     elif args.backend == "envpool":
