@@ -235,7 +235,7 @@ def main() -> None:
     rates = alternate(loops.timed(), env.num_envs, args.seconds, args.chunk)
     for name, rate in rates.items():
         print(f"   {name}: {rate:,.0f} ({rate / rates['raw']:.0%} of raw)")
-    print("   mean ms per env step, in the same chunks (the simulator slows down after inference):")
+    print("   mean ms per env step inside each loop, in the same chunks:")
     for name in rates:
         print(f"   env step in {name}: {loops.env_seconds[name] / loops.env_calls[name] * 1e3:.3f}")
     if args.backend == "envpool" and args.n_envs % 2 == 1:
