@@ -14,11 +14,13 @@ It prints, measured in one run:
    as ratios to raw, and the mean time of the env step inside each (the simulator itself runs slower right after
    inference). The bare loop bounds what trimming the bookkeeping around the forward pass can give;
 3. (envpool backend) envpool's own API, alternating in chunks: raw with uniform actions, raw with a bank of the
-   averaged actor's actions (the simulator's cost depends on the actions), the synchronous loop (step, forward)
-   and an asynchronous one (envpool's batch_size = n_envs / 2, one torch thread) whose forward pass of one half
-   overlaps the simulation of the other. The asynchronous loop shows what overlapping inference with simulation
-   could give; CGAC cannot use it as is, because envpool's recv hands back whichever envs finish first, so the
-   envs drift apart by a step or two (printed), while the on-policy window stores every env at the same step.
+   averaged actor's actions (the simulator's cost depends on the actions), the synchronous loop (step, forward),
+   one that keeps the envs in step (all actions sent at once, envpool's batch_size = n_envs / 2, one torch thread:
+   the forward pass of the half that finishes first overlaps the simulation of the rest), and an asynchronous one
+   (same batch_size) whose forward pass of one half overlaps the simulation of the other. The asynchronous loop
+   shows what overlapping inference with simulation could give; CGAC cannot use it as is, because envpool's recv
+   hands back whichever envs finish first, so the envs drift apart by a step or two (printed), while the on-policy
+   window stores every env at the same step.
 """
 
 import argparse
@@ -131,11 +133,20 @@ class EnvPoolLoops:
         self.async_pool = envpool.make_gymnasium(
             env_id, num_envs=n_envs, batch_size=n_envs // 2, num_threads=num_threads, seed=1
         )
+        # All actions sent at once, results taken in two halves as they finish: the envs stay in step
+        self.halves_pool = envpool.make_gymnasium(
+            env_id, num_envs=n_envs, batch_size=n_envs // 2, num_threads=num_threads, seed=2
+        )
         action_shape = self.pool.action_space.shape
         self.uniform = np.random.default_rng(0).uniform(-1, 1, (16, n_envs, *action_shape)).astype(np.float32)
         self.obs = self.pool.reset()[0]
         self.policy_bank = np.stack([self.step_with_actor() for _ in range(16)])  # actions met along the way
         self.async_pool.async_reset()
+        self.halves_pool.async_reset()
+        self.halves_actions = np.zeros((n_envs, *action_shape), dtype=np.float32)
+        for _ in range(2):
+            obs, *_, info = self.halves_pool.recv()
+            self.halves_actions[info["env_id"]] = self.actions(obs)
         self.step_counts = np.zeros(n_envs, dtype=np.int64)
         self.pending: list[tuple[np.ndarray, np.ndarray]] = []
         self.calls = 0
@@ -153,6 +164,8 @@ class EnvPoolLoops:
         """Env steps done by ``loop`` in ``seconds``."""
         if loop == "async":
             return self.run_async(seconds)
+        if loop == "in step: send all, recv halves":
+            return self.run_halves(seconds)
         end, steps = time.perf_counter() + seconds, 0
         while time.perf_counter() < end:
             self.calls += 1
@@ -163,6 +176,21 @@ class EnvPoolLoops:
             else:
                 self.step_with_actor()
             steps += len(self.obs)
+        return steps
+
+    def run_halves(self, seconds: float) -> int:
+        """Every env steps once per round; the first half's forward pass overlaps the rest's simulation."""
+        end, steps = time.perf_counter() + seconds, 0
+        threads = th.get_num_threads()
+        th.set_num_threads(1)
+        all_envs = np.arange(len(self.halves_actions), dtype=np.int32)
+        while time.perf_counter() < end:
+            self.halves_pool.send(self.halves_actions, all_envs)
+            for _ in range(2):
+                obs, *_, info = self.halves_pool.recv()
+                self.halves_actions[info["env_id"]] = self.actions(obs)
+            steps += len(all_envs)
+        th.set_num_threads(threads)
         return steps
 
     def run_async(self, seconds: float) -> int:
@@ -189,7 +217,8 @@ class EnvPoolLoops:
 
 def envpool_loops(model: CGAC, env_id: str, n_envs: int, seconds: float, chunk: float) -> None:
     loops = EnvPoolLoops(model, env_id, n_envs, num_threads=min(os.cpu_count() or 1, n_envs // 2))
-    names = ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "async")
+    names = ["raw, uniform actions", "raw, the actor's actions", "sync: step, forward"]
+    names += ["in step: send all, recv halves", "async"]
     steps = dict.fromkeys(names, 0)
     elapsed = dict.fromkeys(names, 0.0)
     for name in names:  # warm-up

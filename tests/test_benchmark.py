@@ -50,6 +50,7 @@ def test_collection_profile_tiny_budget():
         env_step = [line for line in lines if line.strip().startswith(f"env step in {name}: ")]
         assert len(env_step) == 1 and float(env_step[0].split()[-1]) > 0, name
     part3 = lines[next(i for i, line in enumerate(lines) if line.startswith("3. envpool's own API")) :]
-    for name in ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "async"):
+    for name in ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "in step: send all, recv halves",
+                 "async"):  # fmt: skip
         assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in part3), name
     assert any("step counts spread over" in line for line in part3)
