@@ -20,7 +20,8 @@ It prints, measured in one run:
    (same batch_size) whose forward pass of one half overlaps the simulation of the other. The asynchronous loop
    shows what overlapping inference with simulation could give; CGAC cannot use it as is, because envpool's recv
    hands back whichever envs finish first, so the envs drift apart by a step or two (printed), while the on-policy
-   window stores every env at the same step.
+   window stores every env at the same step. Last, the raw and synchronous loops again on a pool whose worker
+   threads are pinned to one core each (envpool's ``thread_affinity_offset``; sb3_cgac does not pin by default).
 """
 
 import argparse
@@ -125,11 +126,15 @@ class StepFunctions:
 class EnvPoolLoops:
     """Part 3: loops over envpool's own API (no adapter, no buffer), each run for a chunk of time."""
 
-    def __init__(self, model: CGAC, env_id: str, n_envs: int, num_threads: int):
+    def __init__(self, model: CGAC, env_id: str, n_envs: int, num_threads: int, pin_offset: int):
         import envpool
 
         self.actor = model.actor_avg
         self.pool = envpool.make_gymnasium(env_id, num_envs=n_envs, num_threads=num_threads, seed=0)
+        # The same pool with its worker threads pinned to one core each (envpool pins thread i to core offset + i)
+        self.pinned_pool = envpool.make_gymnasium(
+            env_id, num_envs=n_envs, num_threads=num_threads, seed=0, thread_affinity_offset=pin_offset
+        )
         self.async_pool = envpool.make_gymnasium(
             env_id, num_envs=n_envs, batch_size=n_envs // 2, num_threads=num_threads, seed=1
         )
@@ -140,6 +145,7 @@ class EnvPoolLoops:
         action_shape = self.pool.action_space.shape
         self.uniform = np.random.default_rng(0).uniform(-1, 1, (16, n_envs, *action_shape)).astype(np.float32)
         self.obs = self.pool.reset()[0]
+        self.pinned_obs = self.pinned_pool.reset()[0]
         self.policy_bank = np.stack([self.step_with_actor() for _ in range(16)])  # actions met along the way
         self.async_pool.async_reset()
         self.halves_pool.async_reset()
@@ -160,6 +166,9 @@ class EnvPoolLoops:
         self.obs = self.pool.step(actions)[0]
         return actions
 
+    def step_pinned_with_actor(self) -> None:
+        self.pinned_obs = self.pinned_pool.step(self.actions(self.pinned_obs))[0]
+
     def run(self, loop: str, seconds: float) -> int:
         """Env steps done by ``loop`` in ``seconds``."""
         if loop == "async":
@@ -173,6 +182,10 @@ class EnvPoolLoops:
                 self.pool.step(self.uniform[self.calls % 16])
             elif loop == "raw, the actor's actions":
                 self.pool.step(self.policy_bank[self.calls % 16])
+            elif loop == "raw, uniform actions, pinned threads":
+                self.pinned_pool.step(self.uniform[self.calls % 16])
+            elif loop == "sync: step, forward, pinned threads":
+                self.step_pinned_with_actor()
             else:
                 self.step_with_actor()
             steps += len(self.obs)
@@ -216,9 +229,13 @@ class EnvPoolLoops:
 
 
 def envpool_loops(model: CGAC, env_id: str, n_envs: int, seconds: float, chunk: float) -> None:
-    loops = EnvPoolLoops(model, env_id, n_envs, num_threads=min(os.cpu_count() or 1, n_envs // 2))
+    num_threads = min(os.cpu_count() or 1, n_envs // 2)
+    # Pin to the first cores this process may use (envpool pins thread i to core offset + i)
+    pin_offset = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
+    loops = EnvPoolLoops(model, env_id, n_envs, num_threads, pin_offset)
     names = ["raw, uniform actions", "raw, the actor's actions", "sync: step, forward"]
     names += ["in step: send all, recv halves", "async"]
+    names += ["raw, uniform actions, pinned threads", "sync: step, forward, pinned threads"]
     steps = dict.fromkeys(names, 0)
     elapsed = dict.fromkeys(names, 0.0)
     for name in names:  # warm-up
@@ -235,6 +252,8 @@ def envpool_loops(model: CGAC, env_id: str, n_envs: int, seconds: float, chunk: 
         print(f"   {name}: {rate:,.0f} ({rate / raw:.0%} of raw)")
     drift = loops.step_counts.max() - loops.step_counts.min()
     print(f"   async: the envs' step counts spread over {drift} steps (the on-policy window needs 0)")
+    pinned = steps[names[-1]] / elapsed[names[-1]] / (steps[names[-2]] / elapsed[names[-2]])
+    print(f"   pinned threads (thread_affinity_offset={pin_offset}): sync loop at {pinned:.0%} of pinned raw")
 
 
 def main() -> None:

@@ -51,6 +51,7 @@ def test_collection_profile_tiny_budget():
         assert len(env_step) == 1 and float(env_step[0].split()[-1]) > 0, name
     part3 = lines[next(i for i, line in enumerate(lines) if line.startswith("3. envpool's own API")) :]
     for name in ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "in step: send all, recv halves",
-                 "async"):  # fmt: skip
+                 "async", "raw, uniform actions, pinned threads", "sync: step, forward, pinned threads"):  # fmt: skip
         assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in part3), name
     assert any("step counts spread over" in line for line in part3)
+    assert any(line.strip().startswith("pinned threads (thread_affinity_offset=") for line in part3)
