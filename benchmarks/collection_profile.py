@@ -6,13 +6,16 @@ Where CGAC's collection step loses time against the raw env step (the companion 
 
 It prints, measured in one run:
 1. the averaged actor's forward pass (two draws, as in collection) on its own, right after an env step and
-   after 5 ms with the cores idle (no env step), with torch's default threads and with one thread (medians over
-   many calls), and the same for 20 small torch ops, whose time is all dispatch overhead (it shows what running
-   from cold caches costs per torch call; the idle case shows what waking idle cores costs, large on some VMs);
+   after 5 ms with the cores idle (no env step), with torch's default threads and with one thread, and with its
+   hidden layers in bfloat16 (medians over many calls), and the same for 20 small torch ops, whose time is all
+   dispatch overhead (it shows what running from cold caches costs per torch call; the idle case shows what waking
+   idle cores costs, large on some VMs);
 2. steps/s of the raw env (random actions), of a bare loop (env step, float32 conversion, the forward pass and
    numpy writes, nothing else) and of CGAC's real collection step, alternating in short chunks on the same env,
    as ratios to raw, and the mean time of the env step inside each (the simulator itself runs slower right after
-   inference). The bare loop bounds what trimming the bookkeeping around the forward pass can give;
+   inference). The bare loop bounds what trimming the bookkeeping around the forward pass can give; the last
+   loop is CGAC's collection with the averaged actor's hidden layers run in bfloat16 (a copy made once; cheaper
+   matrix multiplies on CPUs with AVX512-BF16 or AMX, see part 1), which shows what a cheaper forward pass gives;
 3. (envpool backend) envpool's own API, alternating in chunks: raw with uniform actions, raw with a bank of the
    averaged actor's actions (the simulator's cost depends on the actions), the synchronous loop (step, forward),
    one that keeps the envs in step (all actions sent at once, envpool's batch_size = n_envs / 2, one torch thread:
@@ -25,6 +28,7 @@ It prints, measured in one run:
 """
 
 import argparse
+import copy
 import os
 import time
 from collections.abc import Callable
@@ -38,15 +42,35 @@ import torch as th
 from throughput import TimedVecEnv, alternate
 
 
+class BFloat16Sampler(th.nn.Module):
+    """The averaged actor's ``sample`` with its hidden layers in bfloat16 (mean layer, noise and squashing in float32)."""
+
+    def __init__(self, actor: Any):
+        super().__init__()
+        self.latent_pi = copy.deepcopy(actor.latent_pi).to(th.bfloat16)
+        self.mu, self.log_std = actor.mu, actor.log_std
+
+    def sample(self, obs: th.Tensor, n_samples: int) -> th.Tensor:
+        mean_actions = self.mu(self.latent_pi(obs.to(th.bfloat16)).float())
+        noise = th.randn((n_samples, *mean_actions.shape), dtype=mean_actions.dtype)
+        return th.tanh(mean_actions + self.log_std.exp() * noise)
+
+
 def forward_timings(model: CGAC, env: Any, actions: np.ndarray, calls: int) -> dict[str, float]:
     """Median seconds of one forward pass (and of 20 small ops): alone, right after an env step, after 5 ms idle."""
     obs = th.as_tensor(env.reset(), dtype=th.float32)
     threads = th.get_num_threads()
+    bf16 = BFloat16Sampler(model.actor_avg)
+    variants: list[tuple[Callable[[th.Tensor, int], th.Tensor], int, str, bool]] = [
+        (model.actor_avg.sample, threads, "", True),
+        (model.actor_avg.sample, 1, "", True),
+        (bf16.sample, threads, "bfloat16 hidden layers, ", False),
+    ]
     timings: dict[str, list[float]] = {}
-    for n_threads in (threads, 1):
-        for before in ("alone", "after an env step", "after 5 ms idle"):
+    for sample, n_threads, prefix, with_idle in variants:
+        for before in ("alone", "after an env step", "after 5 ms idle")[: 3 if with_idle else 2]:
             th.set_num_threads(n_threads)
-            name = f"{before}, {n_threads} torch thread{'s' * (n_threads > 1)}"
+            name = f"{prefix}{before}, {n_threads} torch thread{'s' * (n_threads > 1)}"
             timings[name] = []
             for call in range(calls):
                 if before == "after an env step":
@@ -55,7 +79,7 @@ def forward_timings(model: CGAC, env: Any, actions: np.ndarray, calls: int) -> d
                     time.sleep(0.005)  # as long as a step of 256 HalfCheetah envs, but with the cores idle
                 start = time.perf_counter()
                 with th.inference_mode():
-                    model.actor_avg.sample(obs, 2)
+                    sample(obs, 2)
                 timings[name].append(time.perf_counter() - start)
     th.set_num_threads(threads)
     small = th.zeros(8)
@@ -87,7 +111,18 @@ class StepFunctions:
         self.done_store = np.zeros((window, env.num_envs), dtype=bool)
         self.action_store = np.zeros((window, env.num_envs, *env.action_space.shape), dtype=np.float32)
         self.pending = np.zeros((env.num_envs, *env.action_space.shape), dtype=np.float32)
-        self.functions = {"raw": self.raw, "bare loop": self.bare, "CGAC collection": self.collect}
+        # A second model on the same env whose averaged actor runs in bfloat16 (its own buffer and pending actions)
+        self.bf16_model = CGAC("MlpPolicy", env, seed=0)
+        # Collection only calls the averaged actor's sample(), which the stand-in provides
+        self.bf16_model.actor_avg = BFloat16Sampler(self.bf16_model.actor_avg)  # type: ignore[assignment]
+        _, self.bf16_callback = self.bf16_model._setup_learn(10**12)
+        self.bf16_callback.on_training_start({}, {})
+        self.functions = {
+            "raw": self.raw,
+            "bare loop": self.bare,
+            "CGAC collection": self.collect,
+            "CGAC collection, bfloat16 forward": self.collect_bf16,
+        }
         self.env_seconds = dict.fromkeys(self.functions, 0.0)
         self.env_calls = dict.fromkeys(self.functions, 0)
 
@@ -107,6 +142,9 @@ class StepFunctions:
 
     def collect(self) -> None:
         self.model.collect_rollouts(self.env, self.callback, self.model.rollout_buffer, n_rollout_steps=1)
+
+    def collect_bf16(self) -> None:
+        self.bf16_model.collect_rollouts(self.env, self.bf16_callback, self.bf16_model.rollout_buffer, n_rollout_steps=1)
 
     def timed(self) -> dict[str, Callable[[], None]]:
         """The loops, each adding its env-step time to ``env_seconds``."""

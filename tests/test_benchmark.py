@@ -42,10 +42,10 @@ def test_collection_profile_tiny_budget():
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     lines = result.stdout.splitlines()
-    assert sum("torch thread" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 6
+    assert sum("torch thread" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 8
     assert sum("5 ms idle" in line for line in lines) == 2
     assert sum("small torch ops" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 2
-    for name in ("raw", "bare loop", "CGAC collection"):
+    for name in ("raw", "bare loop", "CGAC collection", "CGAC collection, bfloat16 forward"):
         assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in lines), name
         env_step = [line for line in lines if line.strip().startswith(f"env step in {name}: ")]
         assert len(env_step) == 1 and float(env_step[0].split()[-1]) > 0, name
