@@ -112,7 +112,7 @@ class StepFunctions:
         self.action_store = np.zeros((window, env.num_envs, *env.action_space.shape), dtype=np.float32)
         self.pending = np.zeros((env.num_envs, *env.action_space.shape), dtype=np.float32)
         # A second model on the same env whose averaged actor runs in bfloat16 (its own buffer and pending actions)
-        self.bf16_model = CGAC("MlpPolicy", env, seed=0)
+        self.bf16_model = CGAC("MlpPolicy", env, seed=0, device="cpu")
         # Collection only calls the averaged actor's sample(), which the stand-in provides
         self.bf16_model.actor_avg = BFloat16Sampler(self.bf16_model.actor_avg)  # type: ignore[assignment]
         _, self.bf16_callback = self.bf16_model._setup_learn(10**12)
@@ -305,7 +305,7 @@ def main() -> None:
     args = parser.parse_args()
 
     env = make_vec_env(args.env, n_envs=args.n_envs, backend=args.backend, seed=0)
-    model = CGAC("MlpPolicy", env, seed=0)
+    model = CGAC("MlpPolicy", env, seed=0, device="cpu")  # the profile is of CPU inference, also where a GPU exists
     action_shape = env.action_space.shape or ()
     actions = np.random.default_rng(0).uniform(-1, 1, (16, env.num_envs, *action_shape)).astype(np.float32)
     print(f"{args.env}, {args.n_envs} envs, {args.backend} backend, {th.get_num_threads()} torch threads")
