@@ -102,8 +102,6 @@ class StepFunctions:
 
     def __init__(self, model: CGAC, env: Any, actions: np.ndarray):
         self.model, self.env, self.actions = model, TimedVecEnv(env), actions
-        _, self.callback = model._setup_learn(10**12)
-        self.callback.on_training_start({}, {})
         self.calls = 0
         window = 32
         self.obs_store = np.zeros((window, env.num_envs, *env.observation_space.shape), dtype=np.float32)
@@ -112,16 +110,14 @@ class StepFunctions:
         self.action_store = np.zeros((window, env.num_envs, *env.action_space.shape), dtype=np.float32)
         self.pending = np.zeros((env.num_envs, *env.action_space.shape), dtype=np.float32)
         # A second model on the same env whose averaged actor runs in bfloat16 (its own buffer and pending actions)
-        self.bf16_model = CGAC("MlpPolicy", env, seed=0, device="cpu")
+        bf16_model = CGAC("MlpPolicy", env, seed=0, device="cpu")
         # Collection only calls the averaged actor's sample(), which the stand-in provides
-        self.bf16_model.actor_avg = BFloat16Sampler(self.bf16_model.actor_avg)  # type: ignore[assignment]
-        _, self.bf16_callback = self.bf16_model._setup_learn(10**12)
-        self.bf16_callback.on_training_start({}, {})
+        bf16_model.actor_avg = BFloat16Sampler(bf16_model.actor_avg)  # type: ignore[assignment]
         self.functions = {
             "raw": self.raw,
             "bare loop": self.bare,
-            "CGAC collection": self.collect,
-            "CGAC collection, bfloat16 forward": self.collect_bf16,
+            "CGAC collection": self.collection(model),
+            "CGAC collection, bfloat16 forward": self.collection(bf16_model),
         }
         self.env_seconds = dict.fromkeys(self.functions, 0.0)
         self.env_calls = dict.fromkeys(self.functions, 0)
@@ -140,11 +136,15 @@ class StepFunctions:
         self.action_store[pos], self.reward_store[pos], self.done_store[pos] = self.pending, rewards, dones
         self.pending = draws[0]
 
-    def collect(self) -> None:
-        self.model.collect_rollouts(self.env, self.callback, self.model.rollout_buffer, n_rollout_steps=1)
+    def collection(self, model: CGAC) -> Callable[[], None]:
+        """One step of ``model``'s real collection, on this env."""
+        _, callback = model._setup_learn(10**12)
+        callback.on_training_start({}, {})
 
-    def collect_bf16(self) -> None:
-        self.bf16_model.collect_rollouts(self.env, self.bf16_callback, self.bf16_model.rollout_buffer, n_rollout_steps=1)
+        def collect() -> None:
+            model.collect_rollouts(self.env, callback, model.rollout_buffer, n_rollout_steps=1)
+
+        return collect
 
     def timed(self) -> dict[str, Callable[[], None]]:
         """The loops, each adding its env-step time to ``env_seconds``."""
