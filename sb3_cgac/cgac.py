@@ -3,14 +3,14 @@ from typing import Any, ClassVar, TypeVar
 
 from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, TensorObs, TerminalObservations, sanitize_observations
 from sb3_cgac.callbacks import EntropyScheduleCallback, ProgressEntropySchedule, RewardEntropySchedule
-from sb3_cgac.policies import Actor, CGACPolicy, MlpPolicy, MultiInputPolicy
+from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
-from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor, polyak_update, update_learning_rate
@@ -19,12 +19,17 @@ from stable_baselines3.common.vec_env import VecEnv
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
 
 CRITIC_LOSSES = ("huber", "mse")
+ENT_COEF_CLAMPS = (True, False, "above_target")
 ENTROPY_SCHEDULES: dict[str, type[EntropyScheduleCallback]] = {
     "reward": RewardEntropySchedule,
     "progress": ProgressEntropySchedule,
 }
 # The paper's minibatch size, used when the window holds that many transitions
 PAPER_BATCH_SIZE = 4096
+# The paper's Polyak coefficients tau_Q and tau_pi, one update of each per 4096 new transitions (4096 envs, one
+# actor update per env step)
+PAPER_TAU, PAPER_POLICY_TAU = 0.005, 0.001
+PAPER_TRANSITIONS_PER_ACTOR_UPDATE = 4096
 # Fewer parallel envs than this gives CGAC too little state diversity (paper Sec. 4.2 and Fig. 3a-b)
 FEW_ENVS = 16
 
@@ -51,6 +56,11 @@ class CGAC(OnPolicyAlgorithm):
     :param critic_learning_rate: Learning rate of the critics (None: ``learning_rate``)
     :param ent_coef_learning_rate: Learning rate of the entropy coefficient (None: 10x ``learning_rate``,
         as in the paper's code)
+    :param final_learning_rate: Learning rate reached by a linear decay of the actor and critic learning rates
+        over ``lr_decay_iterations`` iterations (the authors' code: 2e-3 to 1e-4 over 20k); None: no decay. Alpha's
+        learning rate does not decay, as in the authors' code.
+    :param lr_decay_iterations: Length of that decay in iterations (one iteration collects ``n_steps`` steps of
+        every env and runs its updates)
     :param n_steps: Number of new steps collected per env in each iteration
     :param buffer_window: Number of most recent steps per env kept in the buffer (paper: 32)
     :param batch_size: Minibatch size (None: the paper's 4096, or the whole window when it holds fewer
@@ -61,13 +71,20 @@ class CGAC(OnPolicyAlgorithm):
     :param gae_lambda: lambda of the Q-GAE targets
     :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window;
         the paper uses 8 for SNU humanoid and AllegroHand)
-    :param tau: Polyak coefficient of the target critic (paper tau_Q: 0.005; 1 turns value averaging off)
-    :param policy_tau: Polyak coefficient of the averaged actor (paper tau_pi: 0.001; 1 turns policy averaging off)
+    :param tau: Polyak coefficient of the target critic, applied at every actor update (1 turns value averaging
+        off). None: the paper's tau_Q = 0.005, which it applies once per 4096 new transitions, scaled to the number
+        ``m = n_envs * policy_delay / critic_updates_per_step`` of new transitions per actor update here:
+        ``1 - (1 - 0.005) ** sqrt(4096 / m)`` (the paper's value at 4096 envs, 0.039 at 64 envs)
+    :param policy_tau: Polyak coefficient of the averaged actor, applied at every actor update (1 turns policy
+        averaging off). None: the paper's tau_pi = 0.001 scaled the same way (0.008 at 64 envs)
     :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
         to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
     :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12);
         the entropy schedules change it during training
-    :param ent_coef_monotone: Clamp the learned alpha so that it never increases (paper Sec. 4.2)
+    :param ent_coef_monotone: Clamp of the learned alpha (paper Sec. 4.2): ``"above_target"`` (default) keeps
+        alpha from increasing while the policy's entropy is at or above its target, and lets it rise only to bring
+        an entropy that fell below the target back up, so exploration cannot lock; ``True`` is the paper's exact
+        clamp ``alpha = min(alpha_prev, alpha_new)`` (alpha never increases); ``False`` leaves alpha free (SAC)
     :param entropy_schedule: Schedule of beta: ``"reward"`` (the paper's Eq. 13, see ``RewardEntropySchedule``),
         ``"progress"`` (linear in training progress, see ``ProgressEntropySchedule``) or None (fixed beta)
     :param entropy_schedule_kwargs: Keyword arguments of the entropy schedule callback
@@ -99,8 +116,8 @@ class CGAC(OnPolicyAlgorithm):
     rollout_buffer: CGACRolloutBuffer  # type: ignore[assignment]
     actor: Actor
     actor_avg: Actor
-    critic: ContinuousCritic
-    critic_target: ContinuousCritic
+    critic: CGACCritic
+    critic_target: CGACCritic
 
     def __init__(
         self,
@@ -109,6 +126,8 @@ class CGAC(OnPolicyAlgorithm):
         learning_rate: float | Schedule = 2e-3,
         critic_learning_rate: float | Schedule | None = None,
         ent_coef_learning_rate: float | Schedule | None = None,
+        final_learning_rate: float | None = None,
+        lr_decay_iterations: int = 20_000,
         n_steps: int = 1,
         buffer_window: int = 32,
         batch_size: int | None = None,
@@ -117,11 +136,11 @@ class CGAC(OnPolicyAlgorithm):
         gamma: float = 0.99,
         gae_lambda: float = 0.95,
         gae_horizon: int | None = None,
-        tau: float = 0.005,
-        policy_tau: float = 0.001,
+        tau: float | None = None,
+        policy_tau: float | None = None,
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
-        ent_coef_monotone: bool = True,
+        ent_coef_monotone: bool | str = "above_target",
         entropy_schedule: str | None = None,
         entropy_schedule_kwargs: dict[str, Any] | None = None,
         critic_loss: str = "huber",
@@ -164,6 +183,8 @@ class CGAC(OnPolicyAlgorithm):
         self.ent_coef = ent_coef  # type: ignore[assignment]
         self.critic_learning_rate = critic_learning_rate
         self.ent_coef_learning_rate = ent_coef_learning_rate
+        self.final_learning_rate = final_learning_rate
+        self.lr_decay_iterations = lr_decay_iterations
         self.buffer_window = buffer_window
         self.batch_size = batch_size
         self.critic_updates_per_step = critic_updates_per_step
@@ -186,6 +207,7 @@ class CGAC(OnPolicyAlgorithm):
         self._pending_actions: th.Tensor | None = None
         self._rollout_obs: Any = None
         self._entropy_schedule_callback: EntropyScheduleCallback | None = None
+        self._warned_synchronised_resets = False
 
         self._check_hyperparameters()
         if self.env is not None:
@@ -211,6 +233,9 @@ class CGAC(OnPolicyAlgorithm):
         positive_int("buffer_window", self.buffer_window)
         positive_int("critic_updates_per_step", self.critic_updates_per_step)
         positive_int("policy_delay", self.policy_delay)
+        positive_int("lr_decay_iterations", self.lr_decay_iterations)
+        if self.final_learning_rate is not None and not self.final_learning_rate >= 0:
+            raise ValueError(f"CGAC: final_learning_rate must be >= 0 or None (no decay), got {self.final_learning_rate}.")
         if self.batch_size is not None:
             positive_int("batch_size", self.batch_size)
         if self.gae_horizon is not None:
@@ -222,10 +247,15 @@ class CGAC(OnPolicyAlgorithm):
                 "buffer_window (n_steps == buffer_window gives a fresh buffer every rollout)."
             )
         for name, value in (("tau", self.tau), ("policy_tau", self.policy_tau)):
-            if not 0.0 < value <= 1.0:
+            if value is not None and not 0.0 < value <= 1.0:
                 raise ValueError(f"CGAC: {name} must be in (0, 1] (1 turns the averaging off), got {value}.")
         if not 0.0 <= self.gamma <= 1.0 or not 0.0 <= self.gae_lambda <= 1.0:
             raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {self.gamma} and {self.gae_lambda}.")
+        if not any(self.ent_coef_monotone is clamp or self.ent_coef_monotone == clamp for clamp in ENT_COEF_CLAMPS):
+            raise ValueError(
+                f"CGAC: unknown ent_coef_monotone {self.ent_coef_monotone!r}; choose True (the paper's clamp: alpha never "
+                "increases), 'above_target' (no increase while the entropy is at or above its target) or False (free)."
+            )
         if self.critic_loss not in CRITIC_LOSSES:
             raise ValueError(f"CGAC: unknown critic_loss {self.critic_loss!r}; choose one of {CRITIC_LOSSES}.")
         if self.entropy_schedule is not None and self.entropy_schedule not in ENTROPY_SCHEDULES:
@@ -281,6 +311,7 @@ class CGAC(OnPolicyAlgorithm):
         self.set_random_seed(self.seed)
         self._check_action_space(self.action_space)
         self._setup_batch_size()
+        self._setup_averaging()
 
         buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
         self.rollout_buffer = buffer_class(
@@ -323,6 +354,15 @@ class CGAC(OnPolicyAlgorithm):
         else:
             self._batch_size = self.batch_size
 
+    def _setup_averaging(self) -> None:
+        # The paper's averaging rates are per 4096 new transitions: with fewer per actor update the averaged copies
+        # would lag by far more env steps (at 64 envs a third of a 200k-step run); moving them at the same rate per
+        # transition instead made training unstable. The square root of the ratio sits in between (docs/robust-learning.md).
+        transitions = self.n_envs * self.policy_delay / self.critic_updates_per_step
+        exponent = float(np.sqrt(PAPER_TRANSITIONS_PER_ACTOR_UPDATE / transitions))
+        self._tau = self.tau if self.tau is not None else 1.0 - (1.0 - PAPER_TAU) ** exponent
+        self._policy_tau = self.policy_tau if self.policy_tau is not None else 1.0 - (1.0 - PAPER_POLICY_TAU) ** exponent
+
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
         self.actor_avg = self.policy.actor_avg
@@ -359,6 +399,7 @@ class CGAC(OnPolicyAlgorithm):
         obs, ok = self._obs_to_tensor(self._last_obs)
         buffer.reset()
         buffer.set_current_obs(obs, ok)
+        self.policy.update_obs_normalizer(obs, ok)
         with th.inference_mode():
             self._pending_actions = self.actor_avg.sample(obs, 1)[0]
         self._rollout_obs = self._last_obs
@@ -422,8 +463,11 @@ class CGAC(OnPolicyAlgorithm):
                 trunc_idx = np.flatnonzero(truncated)
                 if len(trunc_idx) > 0:
                     terminal = self._terminal_observations(infos, trunc_idx)
+                    if len(trunc_idx) == env.num_envs >= FEW_ENVS:
+                        self._warn_synchronised_resets()
 
             obs_tensor, obs_ok = self._obs_to_tensor(new_obs)
+            self.policy.update_obs_normalizer(obs_tensor, obs_ok)
             with th.inference_mode():
                 # Two draws of the averaged actor at s_{t+1}: the action of the next step, and the
                 # "next action" a'_{t+1} of this transition for its value target
@@ -446,6 +490,18 @@ class CGAC(OnPolicyAlgorithm):
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
+
+    def _warn_synchronised_resets(self) -> None:
+        if not self._warned_synchronised_resets:
+            self._warned_synchronised_resets = True
+            warnings.warn(
+                "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
+                "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
+                "envs with sb3_cgac.vec_env.make_vec_env(..., random_first_episode=True), or pass "
+                "wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
+                UserWarning,
+                stacklevel=3,
+            )
 
     def _critic_step(self, data: CGACSamples, weight_sum: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         q_values = self.critic(data.observations, data.actions)
@@ -514,18 +570,35 @@ class CGAC(OnPolicyAlgorithm):
             ent_coef_loss.backward()
             self.ent_coef_optimizer.step()
             if self.ent_coef_monotone:
-                # alpha = min(alpha_prev, alpha_new): alpha never increases (paper Sec. 4.2)
+                # alpha = min(alpha_prev, alpha_new) (paper Sec. 4.2). The paper applies it at every step, so once the
+                # entropy overshoots below its target alpha can never pull it back and exploration locks; with
+                # "above_target" the clamp only holds while the entropy is at or above the target (then alpha's
+                # gradient asks for no increase, only Adam's momentum could give one), and alpha may rise as far as it
+                # takes to bring a collapsed entropy back to the target, never further.
                 with th.no_grad():
-                    th.minimum(self.log_ent_coef, previous, out=self.log_ent_coef)
+                    clamped = th.minimum(self.log_ent_coef, previous)
+                    if self.ent_coef_monotone == "above_target":
+                        clamped = th.where(entropy_gap > 0, self.log_ent_coef, clamped)
+                    self.log_ent_coef.copy_(clamped)
             ent_coef_loss = ent_coef_loss.detach()
         entropy = -(log_prob.detach() * data.weights).sum() / weight_sum
         return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
 
+    def _decayed(self, learning_rate: float) -> float:
+        # The authors' linear decay towards final_learning_rate, counted in iterations
+        if self.final_learning_rate is None:
+            return learning_rate
+        iterations = self._n_updates // (self.critic_updates_per_step * self.n_steps)
+        fraction = min(1.0, iterations / self.lr_decay_iterations)
+        return learning_rate + fraction * (self.final_learning_rate - learning_rate)
+
     def _update_learning_rates(self) -> None:
         progress = self._current_progress_remaining
-        self._update_learning_rate(self.actor.optimizer)
-        update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(progress))
-        self.logger.record("train/critic_learning_rate", self.critic_lr_schedule(progress))
+        actor_lr, critic_lr = self._decayed(self.lr_schedule(progress)), self._decayed(self.critic_lr_schedule(progress))
+        update_learning_rate(self.actor.optimizer, actor_lr)
+        update_learning_rate(self.critic.optimizer, critic_lr)
+        self.logger.record("train/learning_rate", actor_lr)
+        self.logger.record("train/critic_learning_rate", critic_lr)
         if self.ent_coef_optimizer is not None:
             lr = self.ent_coef_lr_schedule(progress) if self.ent_coef_lr_schedule else 10 * self.lr_schedule(progress)
             update_learning_rate(self.ent_coef_optimizer, lr)
@@ -549,13 +622,15 @@ class CGAC(OnPolicyAlgorithm):
                 actor_loss, grad_norm, entropy, ent_coef_loss = self._actor_step(data, weight_sum, target_entropy)
                 ent_coef_loss = ent_coef_loss if ent_coef_loss is not None else th.zeros_like(actor_loss)
                 actor_stats.append(th.stack([actor_loss, grad_norm, entropy, ent_coef_loss]))
-                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-                polyak_update(self.actor.parameters(), self.actor_avg.parameters(), self.policy_tau)
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self._tau)
+                polyak_update(self.actor.parameters(), self.actor_avg.parameters(), self._policy_tau)
 
         self.policy.set_training_mode(False)
         self._check_finite_parameters()
         critic_loss, q_mean, critic_grad_norm = th.stack(critic_stats).mean(dim=0).tolist()
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/tau", self._tau)
+        self.logger.record("train/policy_tau", self._policy_tau)
         self.logger.record("train/critic_loss", critic_loss)
         self.logger.record("train/q_mean", q_mean)
         self.logger.record("train/critic_grad_norm", critic_grad_norm)
@@ -621,6 +696,7 @@ class CGAC(OnPolicyAlgorithm):
             "_pending_actions",
             "_rollout_obs",
             "_entropy_schedule_callback",
+            "_warned_synchronised_resets",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

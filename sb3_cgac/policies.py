@@ -2,6 +2,7 @@
 
 from typing import Any
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
@@ -20,6 +21,8 @@ from torch import nn
 # Same caps on the log standard deviation as SB3's SAC
 LOG_STD_MAX = 2
 LOG_STD_MIN = -20
+# The authors' code clips normalised observations at +-5
+OBS_CLIP = 5.0
 
 
 def xavier_init(module: nn.Module) -> None:
@@ -28,6 +31,121 @@ def xavier_init(module: nn.Module) -> None:
         if isinstance(layer, nn.Linear):
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)
+
+
+class RunningObsNormalizer(nn.Module):
+    """
+    Running mean and variance of the observations (merged batch by batch, as SB3's ``RunningMeanStd``), applied as
+    ``clip((obs - mean) / sqrt(var + eps), -clip, +clip)``. The statistics are buffers: they are saved with the
+    policy and loaded with it, and Polyak updates (which average parameters) leave them alone.
+
+    :param shape: Shape of one observation
+    :param clip: Bound on the normalised values (5 in the authors' code)
+    :param epsilon: Added to the variance, and the initial count
+    """
+
+    mean: th.Tensor
+    var: th.Tensor
+    count: th.Tensor
+
+    def __init__(self, shape: tuple[int, ...], clip: float = OBS_CLIP, epsilon: float = 1e-8):
+        super().__init__()
+        self.clip = clip
+        self.epsilon = epsilon
+        self.register_buffer("mean", th.zeros(shape))
+        self.register_buffer("var", th.ones(shape))
+        self.register_buffer("count", th.tensor(1e-4))
+
+    @th.no_grad()
+    def update(self, obs: th.Tensor) -> None:
+        """
+        Merge a batch of observations into the statistics.
+
+        :param obs: Observations, shape (batch, *shape)
+        """
+        obs = obs.float()
+        batch_count = obs.shape[0]
+        batch_mean, batch_var = obs.mean(dim=0), obs.var(dim=0, unbiased=False)
+        delta = batch_mean - self.mean
+        total = self.count + batch_count
+        self.var.copy_((self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total)
+        self.mean.add_(delta * batch_count / total)
+        self.count.copy_(total)
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        return ((obs - self.mean) / th.sqrt(self.var + self.epsilon)).clamp(-self.clip, self.clip)
+
+
+class NormalizedFeaturesExtractor(BaseFeaturesExtractor):
+    """
+    A features extractor preceded by observation normalisation. The policy shares one normalizer between all its
+    networks (actor, critics and their averaged copies), so that they all see the same inputs.
+
+    :param features_extractor: The features extractor that receives the normalised observations
+    :param normalizer: The shared running normalizer
+    """
+
+    def __init__(self, features_extractor: BaseFeaturesExtractor, normalizer: RunningObsNormalizer):
+        super().__init__(features_extractor._observation_space, features_extractor.features_dim)
+        self.extractor = features_extractor
+        self.normalizer = normalizer
+
+    def forward(self, observations: th.Tensor) -> th.Tensor:
+        return self.extractor(self.normalizer(observations))
+
+
+class CGACCritic(ContinuousCritic):
+    """
+    SB3's twin Q networks (``ContinuousCritic``), optionally with LayerNorm after every hidden linear layer
+    (before the activation), a stabiliser of critic-gradient methods (FastTD3, BRO, SimBa, PQN).
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param net_arch: Network architecture
+    :param features_extractor: Network to extract features
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0
+    :param n_critics: Number of critic networks to create
+    :param share_features_extractor: Whether the features extractor is shared with the actor
+    :param layer_norm: Whether to put LayerNorm after every hidden linear layer
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ELU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = False,
+        layer_norm: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            net_arch,
+            features_extractor,
+            features_dim,
+            activation_fn,
+            normalize_images,
+            n_critics,
+            share_features_extractor,
+        )
+        self.layer_norm = layer_norm
+        if layer_norm:
+            for idx, q_net in enumerate(self.q_networks):
+                assert isinstance(q_net, nn.Sequential)
+                layers: list[nn.Module] = []
+                for layer in q_net:
+                    layers.append(layer)
+                    if isinstance(layer, nn.Linear) and layer is not q_net[-1]:
+                        layers.append(nn.LayerNorm(layer.out_features))
+                self.q_networks[idx] = nn.Sequential(*layers)
+                self.add_module(f"qf{idx}", self.q_networks[idx])
 
 
 class Actor(BasePolicy):
@@ -172,12 +290,16 @@ class CGACPolicy(BasePolicy):
     :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
     :param n_critics: Number of Q networks (the value target and the actor use their minimum, paper Eq. 11)
     :param share_features_extractor: Whether actor and critic share the features extractor
+    :param normalize_observations: Normalise observations with running statistics inside the policy, clipped at
+        +-5 (the authors' code always does), so that no ``VecNormalize`` is needed; the statistics are updated
+        from the collected observations and saved with the model (Box observations only)
+    :param critic_layer_norm: Whether to put LayerNorm after every hidden layer of the critics
     """
 
     actor: Actor
     actor_avg: Actor
-    critic: ContinuousCritic
-    critic_target: ContinuousCritic
+    critic: CGACCritic
+    critic_target: CGACCritic
 
     def __init__(
         self,
@@ -196,6 +318,8 @@ class CGACPolicy(BasePolicy):
         optimizer_kwargs: dict[str, Any] | None = None,
         n_critics: int = 2,
         share_features_extractor: bool = False,
+        normalize_observations: bool = False,
+        critic_layer_norm: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -219,6 +343,15 @@ class CGACPolicy(BasePolicy):
         self.activation_fn = activation_fn
         self.use_xavier_init = use_xavier_init
         self.share_features_extractor = share_features_extractor
+        self.normalize_observations = normalize_observations
+        self.obs_normalizer: RunningObsNormalizer | None = None
+        if normalize_observations:
+            if not isinstance(self.observation_space, spaces.Box):
+                raise ValueError(
+                    f"CGACPolicy: normalize_observations needs a Box observation space, got {self.observation_space}. "
+                    "Normalise Dict observations with VecNormalize instead."
+                )
+            self.obs_normalizer = RunningObsNormalizer(self.observation_space.shape)
         net_args = {
             "observation_space": self.observation_space,
             "action_space": self.action_space,
@@ -237,6 +370,7 @@ class CGACPolicy(BasePolicy):
             "net_arch": critic_arch,
             "n_critics": n_critics,
             "share_features_extractor": share_features_extractor,
+            "layer_norm": critic_layer_norm,
         }
         self._build(lr_schedule)
 
@@ -281,17 +415,36 @@ class CGACPolicy(BasePolicy):
                 features_extractor_kwargs=self.features_extractor_kwargs,
                 n_critics=self.critic_kwargs["n_critics"],
                 share_features_extractor=self.share_features_extractor,
+                normalize_observations=self.normalize_observations,
+                critic_layer_norm=self.critic_kwargs["layer_norm"],
             )
         )
         return data
+
+    def make_features_extractor(self) -> BaseFeaturesExtractor:
+        features_extractor = super().make_features_extractor()
+        if self.obs_normalizer is None:
+            return features_extractor
+        return NormalizedFeaturesExtractor(features_extractor, self.obs_normalizer)
+
+    def update_obs_normalizer(self, obs: PyTorchObs, ok: np.ndarray) -> None:
+        """
+        Merge a batch of collected observations into the running statistics (no-op without normalisation).
+
+        :param obs: Observations, one row per env
+        :param ok: Which rows are usable (the others were non-finite and zeroed)
+        """
+        if self.obs_normalizer is not None:
+            assert isinstance(obs, th.Tensor)
+            self.obs_normalizer.update(obs if ok.all() else obs[th.as_tensor(ok, device=obs.device)])
 
     def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return Actor(**actor_kwargs).to(self.device)
 
-    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> CGACCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        critic = ContinuousCritic(**critic_kwargs)
+        critic = CGACCritic(**critic_kwargs)
         if self.use_xavier_init:
             for q_net in critic.q_networks:
                 xavier_init(q_net)
@@ -348,6 +501,8 @@ class MultiInputPolicy(CGACPolicy):
     :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
     :param n_critics: Number of Q networks
     :param share_features_extractor: Whether actor and critic share the features extractor
+    :param normalize_observations: Not supported for Dict observations (use ``VecNormalize``)
+    :param critic_layer_norm: Whether to put LayerNorm after every hidden layer of the critics
     """
 
     def __init__(
@@ -367,6 +522,8 @@ class MultiInputPolicy(CGACPolicy):
         optimizer_kwargs: dict[str, Any] | None = None,
         n_critics: int = 2,
         share_features_extractor: bool = False,
+        normalize_observations: bool = False,
+        critic_layer_norm: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -384,4 +541,6 @@ class MultiInputPolicy(CGACPolicy):
             optimizer_kwargs,
             n_critics,
             share_features_extractor,
+            normalize_observations,
+            critic_layer_norm,
         )

@@ -16,6 +16,7 @@ from typing import Any
 
 from sb3_cgac import CGAC
 from sb3_cgac.vec_env import BACKENDS, make_vec_env
+from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -67,9 +68,11 @@ def _swapped(owner: Any, name: str, value: Any) -> Iterator[None]:
 
 class CGACExperimentManager(ExperimentManager):
     """
-    rl_zoo3's ``ExperimentManager`` with two additions: ``backend`` builds the training and evaluation envs with
+    rl_zoo3's ``ExperimentManager`` with three additions: ``backend`` builds the training and evaluation envs with
     ``sb3_cgac.vec_env.make_vec_env`` (the zoo's normalization, frame stacking and VecEnv wrappers still apply),
-    and CGAC's ``critic_learning_rate`` / ``ent_coef_learning_rate`` accept the zoo's ``lin_<value>`` schedules.
+    CGAC's ``critic_learning_rate`` / ``ent_coef_learning_rate`` accept the zoo's ``lin_<value>`` schedules, and
+    the YAML key ``random_first_episode: true`` cuts the first episode of every training env at a random length
+    (with any backend; evaluation envs are left alone).
 
     :param backend: One of ``sb3_cgac.vec_env.BACKENDS``
     :param backend_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool)
@@ -85,6 +88,12 @@ class CGACExperimentManager(ExperimentManager):
         super().__init__(*args, **kwargs)
         self.backend = backend
         self.backend_kwargs = backend_kwargs or {}
+        self.random_first_episode = False
+
+    def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
+        # An env setting, not a model argument
+        self.random_first_episode = bool(hyperparams.pop("random_first_episode", False))
+        return super()._preprocess_hyperparams(hyperparams)
 
     @staticmethod
     def _preprocess_schedules(hyperparams: dict[str, Any]) -> dict[str, Any]:
@@ -100,13 +109,29 @@ class CGACExperimentManager(ExperimentManager):
         return hyperparams
 
     def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
-        if self.backend not in ADAPTER_BACKENDS:
+        cut_first_episodes = self.random_first_episode and not eval_env
+        if self.backend in ADAPTER_BACKENDS:
+            make = functools.partial(self._make_adapter_vec_env, random_first_episode=cut_first_episodes)
+            with _swapped(rl_zoo3.exp_manager, "make_vec_env", make):
+                return super().create_envs(n_envs, eval_env, no_log)
+        if not cut_first_episodes:
             return super().create_envs(n_envs, eval_env, no_log)
-        with _swapped(rl_zoo3.exp_manager, "make_vec_env", self._make_adapter_vec_env):
+        wrapper = self.env_wrapper
+
+        def wrap(env: gym.Env) -> gym.Env:
+            return RandomFirstEpisodeLength(wrapper(env) if wrapper is not None else env)
+
+        with _swapped(self, "env_wrapper", wrap):
             return super().create_envs(n_envs, eval_env, no_log)
 
     def _make_adapter_vec_env(
-        self, env_fn: Callable, n_envs: int = 1, seed: int | None = None, env_kwargs: dict | None = None, **kwargs: Any
+        self,
+        env_fn: Callable,
+        n_envs: int = 1,
+        seed: int | None = None,
+        env_kwargs: dict | None = None,
+        random_first_episode: bool = False,
+        **kwargs: Any,
     ) -> VecEnv:
         # Same signature as SB3's make_vec_env, which the zoo calls; the backend builds the envs by id instead
         if kwargs.get("wrapper_class") is not None:
@@ -121,6 +146,7 @@ class CGACExperimentManager(ExperimentManager):
             seed=seed,
             env_kwargs=env_kwargs,
             vec_env_kwargs=self.backend_kwargs,
+            random_first_episode=random_first_episode,
         )
 
 

@@ -42,9 +42,11 @@ class RecordAlpha(BaseCallback):
         return True
 
 
-@pytest.mark.parametrize("monotone", [True, False])
-def test_alpha_monotone_clamp(monotone):
-    # A target entropy far above what the policy has makes SAC-style tuning raise alpha
+@pytest.mark.parametrize("monotone", [True, "above_target", False])
+def test_alpha_rises_when_entropy_is_below_target(monotone):
+    # A target entropy far above what the policy can have (beta = -5: +10 nats for 2 action dims) keeps the entropy
+    # below its target: SAC-style tuning raises alpha; the paper's clamp never lets it rise; the default clamp,
+    # which only holds while the entropy is at or above its target, lets it rise so that exploration cannot lock
     model = CGAC(
         "MlpPolicy",
         make_vec_env(ConstantRewardEnv, n_envs=8, seed=0),
@@ -56,11 +58,46 @@ def test_alpha_monotone_clamp(monotone):
     record = RecordAlpha()
     model.learn(1200, callback=record)
     alphas = np.array(record.alphas)
-    if monotone:
+    if monotone is True:
         assert np.all(np.diff(alphas) <= 0)
         assert alphas.max() <= 0.1 + 1e-7
     else:
-        assert alphas[-1] > 0.1
+        assert alphas[-1] > 0.1 * 1.5
+
+
+@pytest.mark.parametrize("monotone", [True, "above_target"])
+def test_alpha_never_rises_while_entropy_is_above_target(monotone):
+    # Target entropy far below the policy's (beta = 20): alpha's gradient only asks for decreases; Adam's momentum
+    # could still step it up after a sign change, which both clamps forbid
+    model = CGAC(
+        "MlpPolicy",
+        make_vec_env(ConstantRewardEnv, n_envs=8, seed=0),
+        target_entropy_beta=20.0,
+        ent_coef_monotone=monotone,
+        **SMALL,
+    )
+    record = RecordAlpha()
+    model.learn(1200, callback=record)
+    assert np.all(np.diff(record.alphas) <= 0)
+    assert record.alphas[-1] < 0.1 * 0.9
+
+
+def test_alpha_clamp_releases_only_below_target():
+    """One update by hand: with the entropy above target the clamp holds, below it alpha follows Adam up."""
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), **SMALL)
+    model.learn(400)
+    data = model.rollout_buffer.sample(64)
+    weight_sum = data.weights.sum()
+    # Momentum that pushes log(alpha) up, whatever this batch's gradient says
+    model.log_ent_coef.grad = th.tensor([-1e6])
+    model.ent_coef_optimizer.step()
+    for target_entropy, may_rise in ((-100.0, False), (100.0, True)):
+        before = model.log_ent_coef.item()
+        model._actor_step(data, weight_sum, target_entropy)
+        if may_rise:
+            assert model.log_ent_coef.item() > before
+        else:
+            assert model.log_ent_coef.item() <= before
 
 
 def test_alpha_decreases_when_entropy_is_above_target():
@@ -150,3 +187,20 @@ def test_rollouts_act_with_the_averaged_actor():
     assert th.allclose(next_actions, th.full_like(next_actions, np.tanh(0.5)), atol=1e-4)
     action, _ = model.predict(np.zeros((1, 2), np.float32), deterministic=True)
     assert action == pytest.approx(np.tanh(0.5), abs=1e-5)
+
+
+@pytest.mark.parametrize(
+    "n_envs, critic_updates, policy_delay, tau, policy_tau",
+    [
+        (64, 2, 128, 0.005, 0.001),  # 4096 new transitions per actor update: the paper's values
+        (64, 2, 2, 1 - 0.995**8, 1 - 0.999**8),  # 64 per update: sqrt(4096 / 64) = 8 paper updates' worth
+        (16, 4, 4, 1 - 0.995**16, 1 - 0.999**16),  # 16 per update: 16x
+    ],
+)
+def test_default_averaging_scales_with_transitions_per_update(n_envs, critic_updates, policy_delay, tau, policy_tau):
+    env = make_vec_env(ConstantRewardEnv, n_envs=n_envs)
+    model = CGAC("MlpPolicy", env, critic_updates_per_step=critic_updates, policy_delay=policy_delay, **SMALL)
+    assert model._tau == pytest.approx(tau) and model._policy_tau == pytest.approx(policy_tau)
+    # Given values are used as they are
+    model = CGAC("MlpPolicy", env, tau=0.3, policy_tau=0.2, **SMALL)
+    assert (model._tau, model._policy_tau) == (0.3, 0.2)

@@ -32,6 +32,9 @@ def make_env(n_envs: int = 4, env_id: str = "Pendulum-v1", **kwargs):
         dict(learning_rate=lambda progress: 1e-3 * progress, critic_learning_rate=5e-4, ent_coef_learning_rate=1e-3),
         dict(policy_kwargs=dict(net_arch=dict(pi=[8], qf=[16, 16]), state_dependent_std=True, n_critics=3)),
         dict(policy_kwargs=dict(net_arch=[16], share_features_extractor=True, use_xavier_init=False)),
+        dict(policy_kwargs=dict(net_arch=[16], normalize_observations=True, critic_layer_norm=True)),
+        dict(policy_kwargs=dict(net_arch=[16], optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(weight_decay=0.01))),
+        dict(ent_coef_monotone=True, final_learning_rate=1e-4, lr_decay_iterations=50),
     ],
 )
 def test_run(kwargs):

@@ -109,3 +109,25 @@ def test_policy_save_load(tmp_path):
         assert th.equal(value, policy.state_dict()[name]), name
     obs = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
     assert np.array_equal(model.policy.predict(obs, deterministic=True)[0], policy.predict(obs, deterministic=True)[0])
+
+
+def test_save_load_observation_normalizer(tmp_path):
+    """The running statistics are saved with the model, and all four networks keep sharing one normalizer."""
+    env = make_env()
+    kwargs = dict(policy_kwargs=dict(net_arch=[16, 16], normalize_observations=True, critic_layer_norm=True), seed=0)
+    model = CGAC("MlpPolicy", env, **kwargs)
+    model.learn(400)
+    normalizer = model.policy.obs_normalizer
+    assert normalizer is not None and normalizer.count > 400
+    model.save(tmp_path / "normalized")
+    loaded = CGAC.load(tmp_path / "normalized", env=env)
+    assert loaded.policy.obs_normalizer is not None
+    for name in ("mean", "var", "count"):
+        assert th.equal(getattr(loaded.policy.obs_normalizer, name), getattr(normalizer, name)), name
+    for network in (loaded.actor, loaded.actor_avg, loaded.critic, loaded.critic_target):
+        assert network.features_extractor.normalizer is loaded.policy.obs_normalizer
+    obs = env.reset()
+    assert np.array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    count = float(loaded.policy.obs_normalizer.count)
+    loaded.learn(100, reset_num_timesteps=False)
+    assert float(loaded.policy.obs_normalizer.count) > count

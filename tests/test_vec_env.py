@@ -169,3 +169,30 @@ def test_cgac_with_vec_normalize_on_adapters(backend):
     assert len(model.ep_info_buffer) > 0  # rollout/ep_rew_mean is logged
     mean_return, _ = evaluate_policy(model, env, n_eval_episodes=4, warn=False)
     assert np.isfinite(mean_return)
+
+
+@pytest.mark.parametrize("backend", ["envpool", "gymnasium", "dummy"])
+def test_random_first_episode(backend):
+    """Every backend spreads the first resets over the episode length, as time-limit truncations with the
+    terminal observation; the cut envs restart from a fresh initial state and later episodes run their full length."""
+    env_id, limit = ("Hopper-v5", 30) if backend != "dummy" else ("Pendulum-v1", 200)
+    env_kwargs = dict(max_episode_steps=limit) if backend != "dummy" else None
+    vec_env = make_vec_env(env_id, n_envs=16, backend=backend, seed=0, env_kwargs=env_kwargs, random_first_episode=True)
+    obs = vec_env.reset()
+    first, later = {}, []
+    lengths = np.zeros(16, dtype=int)
+    for _ in range(3 * limit):
+        # Zero actions: Hopper stands for more than 30 steps, so only the time limit and the cuts end episodes
+        new_obs, _, dones, infos = vec_env.step(np.zeros((16, *vec_env.action_space.shape), np.float32))
+        lengths += 1
+        for idx in np.flatnonzero(dones):
+            assert infos[idx]["TimeLimit.truncated"]
+            assert not np.array_equal(infos[idx]["terminal_observation"], new_obs[idx])
+            (later.append(lengths[idx]) if idx in first else first.__setitem__(idx, lengths[idx]))
+            lengths[idx] = 0
+        obs = new_obs
+    assert obs.shape[0] == 16
+    cuts = np.array(list(first.values()))
+    assert len(cuts) == 16 and cuts.min() >= 1 and cuts.max() <= limit and len(set(cuts.tolist())) >= 8
+    assert later and set(later) == {limit}
+    vec_env.close()

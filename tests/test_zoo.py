@@ -92,6 +92,28 @@ def test_envpool_backend_and_enjoy(tmp_path):
     assert "Mean reward" in result.stdout
 
 
+@pytest.mark.parametrize("backend", ["dummy", "envpool"])
+def test_random_first_episode_key(tmp_path, backend):
+    """The YAML key cuts the training envs' first episodes at random lengths, with any backend, and not the eval envs."""
+    if backend == "envpool":
+        pytest.importorskip("envpool")
+    entry = yaml.safe_load((HYPERPARAMS_DIR / "cgac.yml").read_text())["Pendulum-v1"]
+    entry.update(n_envs=16, random_first_episode=True)
+    conf = tmp_path / "custom.yml"
+    conf.write_text(yaml.safe_dump({"Pendulum-v1": entry}))
+    model, manager = build_model("cgac", "Pendulum-v1", backend=backend, log_folder=str(tmp_path), conf_file=str(conf))
+    ends = []
+    for env in (model.get_env(), manager.create_envs(16, eval_env=True)):
+        env.reset()
+        steps_to_first_end = np.zeros(16, dtype=int)
+        for step in range(1, 201):
+            _, _, dones, _ = env.step(np.zeros((16, 1), np.float32))
+            steps_to_first_end[(steps_to_first_end == 0) & dones] = step
+        ends.append(steps_to_first_end)
+    assert len(set(ends[0].tolist())) > 8 and ends[0].min() >= 1  # spread over the episode length
+    assert set(ends[1].tolist()) == {200}  # evaluation episodes run their full length
+
+
 def yaml_entries() -> list[tuple[str, str]]:
     return [(name, env_id) for name in YAML_FILES for env_id in yaml.safe_load((HYPERPARAMS_DIR / f"{name}.yml").read_text())]
 

@@ -8,6 +8,7 @@ from typing import Any
 
 from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv
 from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv
+from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
 from gymnasium.vector import AutoresetMode
@@ -24,6 +25,7 @@ def make_vec_env(
     seed: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
     vec_env_kwargs: dict[str, Any] | None = None,
+    random_first_episode: bool = False,
 ) -> VecEnv:
     """
     Build ``n_envs`` copies of ``env_id`` as an SB3 ``VecEnv`` with the chosen backend. Every backend gives
@@ -38,6 +40,9 @@ def make_vec_env(
     :param env_kwargs: Keyword arguments of the env constructor
     :param vec_env_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool,
         ``start_method`` for subproc, ``info_keys`` for the envpool and gymnasium adapters)
+    :param random_first_episode: Cut the first episode of every env at a random length, so that the envs do not
+        all reset at the same steps (``sb3_cgac.wrappers.RandomFirstEpisodeLength`` for SB3's VecEnvs, the adapters'
+        own ``random_first_episode`` for the others)
     :return: The vectorised env
     """
     env_kwargs = env_kwargs or {}
@@ -45,8 +50,15 @@ def make_vec_env(
     if backend in ("dummy", "subproc"):
         vec_env_cls = DummyVecEnv if backend == "dummy" else SubprocVecEnv
         return sb3_make_vec_env(
-            env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs, vec_env_cls=vec_env_cls, vec_env_kwargs=vec_env_kwargs
+            env_id,
+            n_envs=n_envs,
+            seed=seed,
+            env_kwargs=env_kwargs,
+            vec_env_cls=vec_env_cls,
+            vec_env_kwargs=vec_env_kwargs,
+            wrapper_class=RandomFirstEpisodeLength if random_first_episode else None,
         )
+    vec_env_kwargs = {**vec_env_kwargs, "random_first_episode": random_first_episode}
     if backend == "envpool":
         return EnvPoolVecEnv(env_id, n_envs, seed=seed if seed is not None else 0, **vec_env_kwargs, **env_kwargs)
     if backend in ("gymnasium", "gymnasium_async"):

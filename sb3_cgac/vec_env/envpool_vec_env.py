@@ -49,6 +49,7 @@ class EnvPoolVecEnv(GymnasiumVecEnv):
         rebuilds the pool at the next reset
     :param num_threads: Threads of envpool's pool (None: one per CPU core)
     :param info_keys: Per-env info entries to copy into SB3's info dicts at every step
+    :param random_first_episode: Cut the first episode of every env at a random length (see ``GymnasiumVecEnv``)
     :param env_kwargs: Other keyword arguments of ``envpool.make_gymnasium`` (e.g. ``max_episode_steps``)
     """
 
@@ -59,6 +60,7 @@ class EnvPoolVecEnv(GymnasiumVecEnv):
         seed: int = 0,
         num_threads: int | None = None,
         info_keys: Sequence[str] = (),
+        random_first_episode: bool = False,
         **env_kwargs: Any,
     ):
         self.env_id = env_id
@@ -66,7 +68,7 @@ class EnvPoolVecEnv(GymnasiumVecEnv):
         self.env_kwargs = env_kwargs
         self.current_seed = seed
         _warn_if_torch_spins()
-        super().__init__(self._make_pool(num_envs, seed), info_keys=info_keys)
+        super().__init__(self._make_pool(num_envs, seed), info_keys=info_keys, random_first_episode=random_first_episode)
         if isinstance(self.action_space, spaces.Box) and self.action_space.dtype == np.float64:
             # Gymnasium's MuJoCo envs declare float32 actions: match them, so that a model trained here
             # loads onto the gymnasium env (SB3 compares the spaces)
@@ -92,6 +94,9 @@ class EnvPoolVecEnv(GymnasiumVecEnv):
             self.current_seed = seed[0]
             self.venv = self._make_pool(self.num_envs, self.current_seed)
         return self.venv.reset(options=options)
+
+    def _cut_seed(self, seeds: list[int] | None) -> int | None:
+        return self.current_seed
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         # The envs live in C++: only the pool's own attributes can be read

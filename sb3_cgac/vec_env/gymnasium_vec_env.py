@@ -46,9 +46,12 @@ class GymnasiumVecEnv(VecEnv):
     :param venv: The gymnasium vector env, e.g. from ``gym.make_vec(env_id, num_envs, vector_kwargs=...)``
     :param info_keys: Per-env info entries to copy into SB3's info dicts at every step (each costs a loop over
         envs). ``is_success`` is always copied for finished episodes.
+    :param random_first_episode: Cut the first episode of every env after a random number of steps, drawn uniformly
+        from ``1..max_episode_steps``, as a time-limit truncation, so that the envs do not all reset at the same
+        steps (see ``sb3_cgac.wrappers.RandomFirstEpisodeLength``, the same for single envs)
     """
 
-    def __init__(self, venv: gym.vector.VectorEnv, info_keys: Sequence[str] = ()):
+    def __init__(self, venv: gym.vector.VectorEnv, info_keys: Sequence[str] = (), random_first_episode: bool = False):
         if not isinstance(venv, gym.vector.VectorEnv):
             raise TypeError(
                 f"GymnasiumVecEnv wraps a gymnasium.vector.VectorEnv, got {type(venv).__name__}. Build one with "
@@ -63,6 +66,24 @@ class GymnasiumVecEnv(VecEnv):
         self._episode_returns = np.zeros(self.num_envs, dtype=np.float64)
         self._episode_lengths = np.zeros(self.num_envs, dtype=np.int64)
         self._start_time = time.time()
+        self.random_first_episode = random_first_episode
+        # Length at which each env's first episode is cut (0: no cut, or the first episode is over)
+        self._first_cut = np.zeros(self.num_envs, dtype=np.int64)
+        if random_first_episode:
+            self.max_episode_steps()  # fail now, not at the first reset
+
+    def max_episode_steps(self) -> int:
+        """Time limit of the envs' episodes, the range of the random first-episode cuts."""
+        spec = getattr(self.venv, "spec", None)
+        # gymnasium.make_vec keeps an override of the registered limit in the spec's kwargs, envpool in its config
+        limit = getattr(spec, "kwargs", {}).get("max_episode_steps") or getattr(spec, "max_episode_steps", None)
+        limit = limit or getattr(getattr(spec, "config", None), "max_episode_steps", None)
+        if not limit:
+            raise ValueError(
+                f"GymnasiumVecEnv: random_first_episode needs the episodes' time limit, and {type(self.venv).__name__} "
+                "has none in its spec. Build the vector env from a registered id with a time limit."
+            )
+        return int(limit)
 
     def _reset_backend(self, seed: list[int] | None, options: dict[str, Any] | None) -> tuple[BatchObs, dict[str, Any]]:
         # Sync and async vector envs take one seed per env (the base class is typed with a single int)
@@ -77,6 +98,9 @@ class GymnasiumVecEnv(VecEnv):
         self.reset_infos = self._info_dicts(infos)
         self._episode_returns[:] = 0
         self._episode_lengths[:] = 0
+        if self.random_first_episode:
+            rng = np.random.default_rng(self._cut_seed(seeds))
+            self._first_cut = rng.integers(1, self.max_episode_steps() + 1, size=self.num_envs)
         return obs
 
     def step_async(self, actions: np.ndarray) -> None:
@@ -90,12 +114,20 @@ class GymnasiumVecEnv(VecEnv):
         self._episode_returns += rewards
         self._episode_lengths += 1
         step_infos = self._info_dicts(infos)
+        cut = self._cut_first_episodes(dones)
+        if cut is not None:  # a time-limit truncation of envs the vector env did not end itself
+            truncated, dones = truncated | cut, dones | cut
         done_idx = np.flatnonzero(dones)
         if len(done_idx) > 0:
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
-                terminal_obs = infos["final_obs"]
+                terminal_obs = infos.get("final_obs")
                 final_infos = infos.get("final_info", {})
-                terminal_rows = [terminal_obs[idx] for idx in done_idx]
+                terminal_rows = [
+                    _rows(obs, idx) if cut is not None and cut[idx] else terminal_obs[idx]  # type: ignore[index]
+                    for idx in done_idx
+                ]
+                if cut is not None:
+                    obs = self._reset_finished(obs, cut)
             else:
                 final_infos = infos
                 terminal_rows = self._split_rows(_rows(obs, done_idx), len(done_idx))
@@ -111,6 +143,18 @@ class GymnasiumVecEnv(VecEnv):
             self._episode_returns[done_idx] = 0
             self._episode_lengths[done_idx] = 0
         return obs, rewards, dones, step_infos
+
+    def _cut_seed(self, seeds: list[int] | None) -> int | None:
+        # The first-episode cuts are drawn from the envs' seed, so that seeded runs repeat
+        return seeds[0] if seeds is not None else None
+
+    def _cut_first_episodes(self, dones: np.ndarray) -> np.ndarray | None:
+        """The envs whose first episode reaches its random cut at this step (None: no env)."""
+        if not self.random_first_episode:
+            return None
+        cut = (self._episode_lengths == self._first_cut) & ~dones
+        self._first_cut[dones | cut] = 0  # first episodes that end here are over
+        return cut if cut.any() else None
 
     def _split_rows(self, obs: BatchObs, n_rows: int) -> list[Any]:
         if isinstance(obs, dict):

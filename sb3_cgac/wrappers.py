@@ -1,0 +1,56 @@
+"""Gymnasium wrappers for training with many parallel envs."""
+
+from typing import Any, SupportsFloat
+
+import gymnasium as gym
+import numpy as np
+
+
+class RandomFirstEpisodeLength(gym.Wrapper):
+    """
+    Cut the first episode of the env at a random length, drawn uniformly from ``1..max_episode_steps``, as a
+    time-limit truncation (``truncated=True``; SB3's VecEnvs then report ``TimeLimit.truncated`` with the
+    terminal observation, so CGAC bootstraps the value target as for any time limit). Later episodes are left
+    alone.
+
+    Why: envs built and reset together hit their time limits together, so a few steps after every synchronised
+    reset CGAC's window of recent steps holds only initial states (paper Sec. 4.2, "Policy-Value Coupling"). With
+    a random first cut the episodes of the parallel envs are spread evenly over the episode length from then on:
+    a simpler equivalent of the authors' reset throttling, which needs per-env resets that SB3's VecEnv API
+    does not offer. Use it as the ``wrapper_class`` of ``make_vec_env`` (or an rl-zoo ``env_wrapper``).
+
+    :param env: The env to wrap
+    :param max_episode_steps: Longest first episode (None: the env's registered time limit)
+    """
+
+    def __init__(self, env: gym.Env, max_episode_steps: int | None = None):
+        super().__init__(env)
+        if max_episode_steps is None:
+            max_episode_steps = env.spec.max_episode_steps if env.spec is not None else None
+        if max_episode_steps is None or max_episode_steps < 1:
+            raise ValueError(
+                f"RandomFirstEpisodeLength needs the episode length to draw from: {env} has no registered time limit "
+                "(env.spec.max_episode_steps). Pass max_episode_steps."
+            )
+        self.max_episode_steps = int(max_episode_steps)
+        # Steps left before the cut of the first episode; None once the first episode is over
+        self._steps_left: int | None = None
+        self._first_episode = True
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(seed=seed, options=options)
+        if self._first_episode:
+            # An own generator: drawing from the env's would change the env's later episodes
+            self._steps_left = int(np.random.default_rng(seed).integers(1, self.max_episode_steps + 1))
+            self._first_episode = False
+        else:
+            self._steps_left = None
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if self._steps_left is not None:
+            self._steps_left -= 1
+            if self._steps_left == 0 and not (terminated or truncated):
+                truncated = True
+        return obs, reward, terminated, truncated, info

@@ -1,0 +1,142 @@
+"""Observation normalisation inside the policy, LayerNorm critics, the learning-rate decay and desynchronised resets."""
+
+from sb3_cgac import CGAC
+from sb3_cgac.policies import CGACPolicy, RunningObsNormalizer
+from sb3_cgac.wrappers import RandomFirstEpisodeLength
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
+
+
+def test_running_normalizer_matches_numpy():
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(loc=3.0, scale=[0.5, 4.0], size=(n, 2)).astype(np.float32) for n in (7, 64, 1, 300)]
+    normalizer = RunningObsNormalizer((2,))
+    for batch in batches:
+        normalizer.update(th.as_tensor(batch))
+    everything = np.concatenate(batches)
+    np.testing.assert_allclose(normalizer.mean.numpy(), everything.mean(axis=0), rtol=1e-4)
+    np.testing.assert_allclose(normalizer.var.numpy(), everything.var(axis=0), rtol=1e-3)
+    normalized = normalizer(th.as_tensor(everything)).numpy()
+    np.testing.assert_allclose(normalized.mean(axis=0), 0.0, atol=1e-3)
+    np.testing.assert_allclose(normalized.std(axis=0), 1.0, atol=2e-2)
+    # Clipped at +-5, as in the authors' code
+    assert normalizer(th.full((1, 2), 1e4)).max().item() == pytest.approx(5.0)
+
+
+def test_normalizer_ignores_non_finite_rows():
+    policy = CGACPolicy(
+        gym.spaces.Box(-np.inf, np.inf, (1,)), gym.spaces.Box(-1, 1, (1,)), lambda _: 1e-3, normalize_observations=True
+    )
+    normalizer = policy.obs_normalizer
+    assert normalizer is not None
+    # The zeroed row of a non-finite observation does not enter the statistics
+    policy.update_obs_normalizer(th.tensor([[2.0], [0.0], [4.0]]), np.array([True, False, True]))
+    assert normalizer.mean.item() == pytest.approx(3.0, abs=1e-3)
+
+
+def test_normalize_observations_rejects_dict_spaces():
+    from test_run import DictObsEnv
+
+    with pytest.raises(ValueError, match="normalize_observations needs a Box"):
+        CGAC("MultiInputPolicy", make_vec_env(DictObsEnv, n_envs=2), policy_kwargs=dict(normalize_observations=True))
+
+
+def test_critic_layer_norm():
+    model = CGAC(
+        "MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), policy_kwargs=dict(net_arch=[8, 8], critic_layer_norm=True)
+    )
+    for critic in (model.critic, model.critic_target):
+        for q_net in critic.q_networks:
+            kinds = [type(layer).__name__ for layer in q_net]
+            assert kinds == ["Linear", "LayerNorm", "ELU", "Linear", "LayerNorm", "ELU", "Linear"]
+    # The LayerNorm parameters are trained and averaged like the others
+    assert len(list(model.critic.parameters())) == len(list(model.critic_target.parameters())) == 2 * 10
+
+
+def test_learning_rate_decay():
+    """The authors' schedule: linear from the initial to the final rate over lr_decay_iterations iterations."""
+    model = CGAC(
+        "MlpPolicy",
+        make_vec_env("Pendulum-v1", n_envs=4),
+        learning_rate=2e-3,
+        final_learning_rate=1e-4,
+        lr_decay_iterations=100,
+        **SMALL,
+    )
+    model.learn(4 * 72)  # updates start once the window holds 32 steps: 40 iterations of updates
+    iterations = model._n_updates // model.critic_updates_per_step
+    # The rate set at the start of the last iteration, before its updates
+    expected = 2e-3 + (iterations - 1) / 100 * (1e-4 - 2e-3)
+    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(expected)
+    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(expected)
+    # Alpha's rate stays at 10x the initial rate, as in the authors' code
+    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(2e-2)
+    model.learn(4 * 100, reset_num_timesteps=False)
+    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
+
+
+def test_bad_learning_rate_decay():
+    with pytest.raises(ValueError, match="final_learning_rate"):
+        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=-1.0)
+    with pytest.raises(ValueError, match="lr_decay_iterations"):
+        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=1e-4, lr_decay_iterations=0)
+
+
+def test_random_first_episode_length():
+    """First episodes end at lengths spread over 1..200 as time-limit truncations; later ones last the full 200."""
+    env = make_vec_env("Pendulum-v1", n_envs=32, seed=0, wrapper_class=RandomFirstEpisodeLength)
+    env.reset()
+    first_end: dict[int, int] = {}
+    later_lengths = []
+    since_reset = np.zeros(32, dtype=int)
+    for _ in range(400):
+        _, _, dones, infos = env.step(np.zeros((32, 1), np.float32))
+        since_reset += 1
+        for idx in np.flatnonzero(dones):
+            assert infos[idx]["TimeLimit.truncated"] and "terminal_observation" in infos[idx]
+            if idx in first_end:
+                later_lengths.append(since_reset[idx])
+            else:
+                first_end[idx] = since_reset[idx]
+            since_reset[idx] = 0
+    first = np.array(list(first_end.values()))
+    assert len(first) == 32 and first.min() >= 1 and first.max() <= 200
+    assert len(set(first.tolist())) > 20  # spread out, not all at the time limit
+    assert later_lengths and all(length == 200 for length in later_lengths)
+    # Seeded: the same seeds give the same cuts
+    cuts = []
+    for _ in range(2):
+        fresh = make_vec_env("Pendulum-v1", n_envs=8, seed=3, wrapper_class=RandomFirstEpisodeLength)
+        fresh.reset()
+        cuts.append([fresh.envs[idx]._steps_left for idx in range(8)])
+    assert cuts[0] == cuts[1]
+
+
+def test_random_first_episode_length_needs_a_time_limit():
+    class NoLimit(gym.Env):
+        observation_space = gym.spaces.Box(-1, 1, (1,))
+        action_space = gym.spaces.Box(-1, 1, (1,))
+
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        RandomFirstEpisodeLength(NoLimit())
+    assert RandomFirstEpisodeLength(NoLimit(), max_episode_steps=10).max_episode_steps == 10
+
+
+def test_warns_about_synchronised_resets():
+    kwargs = dict(policy_kwargs=dict(net_arch=[8]), buffer_window=4, seed=0)
+    with pytest.warns(UserWarning, match="same step"):
+        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16, seed=0), **kwargs).learn(16 * 201)
+    import warnings
+
+    from sb3_cgac.vec_env import make_vec_env as make_cgac_vec_env
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        env = make_cgac_vec_env("Pendulum-v1", n_envs=16, seed=0, random_first_episode=True)
+        CGAC("MlpPolicy", env, **kwargs).learn(16 * 401)
