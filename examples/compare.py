@@ -283,6 +283,7 @@ def summarise(
             "seeds": len(frames),
             "final": float(finals[run].mean()),
             "final_std": float(finals[run].std(ddof=0)),
+            "worst": float(finals[run].min()),
             "best": float(np.mean([frame["mean_return"].max() for frame in frames])),
             "sps": float(np.mean([d["steps"] / d["seconds"] for d in done])),
             "reached": int(np.isfinite(times).sum()),
@@ -306,12 +307,13 @@ def summarise(
         f"Threshold: {threshold:.1f} ({threshold_source}). "
         "Time and steps to threshold are medians over seeds of the training wall-clock and env steps at the first "
         "evaluation at or above it (so they are only as fine as the evaluation interval); final and best return: "
-        "mean over seeds of the last and best evaluation (+/- std over seeds). The evaluation before training counts "
+        "mean over seeds of the last and best evaluation (+/- std over seeds); worst final: the lowest last evaluation "
+        "of any seed. The evaluation before training counts "
         "in neither the best return nor the threshold. Ratios below 1 mean faster than the reference.",
         "",
-        "| run | seeds | final return | best return | steps/s | time to threshold | steps to threshold |"
+        "| run | seeds | final return | worst final | best return | steps/s | time to threshold | steps to threshold |"
         + "".join(f" time vs {reference} |" for reference in shown),
-        "| --- | --- | --- | --- | --- | --- | --- |" + " --- |" * len(shown),
+        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * len(shown),
     ]
     for run, s in stats.items():
         time_text = (
@@ -321,7 +323,8 @@ def summarise(
         )
         steps_text = f"{s['steps']:,.0f}" if np.isfinite(s["steps"]) else "-"
         lines.append(
-            f"| {run} | {s['seeds']} | {s['final']:.0f} +/- {s['final_std']:.0f} | {s['best']:.0f} | {s['sps']:,.0f} "
+            f"| {run} | {s['seeds']} | {s['final']:.0f} +/- {s['final_std']:.0f} | {s['worst']:.0f} | {s['best']:.0f} "
+            f"| {s['sps']:,.0f} "
             f"| {time_text} ({s['reached']}/{s['seeds']} seeds) | {steps_text} |"
             + "".join(f" {ratio(run, reference)} |" for reference in shown)
         )

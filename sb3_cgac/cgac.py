@@ -357,7 +357,7 @@ class CGAC(OnPolicyAlgorithm):
     def _setup_averaging(self) -> None:
         # The paper's averaging rates are per 4096 new transitions: with fewer per actor update the averaged copies
         # would lag by far more env steps (at 64 envs a third of a 200k-step run); moving them at the same rate per
-        # transition instead made training unstable. The square root of the ratio sits in between (docs/robust-learning.md).
+        # transition instead made training unstable. The square root of the ratio sits in between (docs/tuning.md).
         transitions = self.n_envs * self.policy_delay / self.critic_updates_per_step
         exponent = float(np.sqrt(PAPER_TRANSITIONS_PER_ACTOR_UPDATE / transitions))
         self._tau = self.tau if self.tau is not None else 1.0 - (1.0 - PAPER_TAU) ** exponent
