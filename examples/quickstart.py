@@ -3,7 +3,7 @@ Quickstart: train CGAC on Pendulum-v1 with 64 parallel envs, evaluate it, save a
 
     python examples/quickstart.py [--timesteps 200000]
 
-About a minute and a half on 2 CPU cores; the mean evaluation return should end near -200 or above
+About two minutes on 2 CPU cores; the mean evaluation return should end near -200 or above
 (a random policy scores about -1200).
 """
 

@@ -81,12 +81,15 @@ class NormalizedFeaturesExtractor(BaseFeaturesExtractor):
     A features extractor preceded by observation normalisation. The policy shares one normalizer between all its
     networks (actor, critics and their averaged copies), so that they all see the same inputs.
 
+    :param observation_space: Observation space
     :param features_extractor: The features extractor that receives the normalised observations
     :param normalizer: The shared running normalizer
     """
 
-    def __init__(self, features_extractor: BaseFeaturesExtractor, normalizer: RunningObsNormalizer):
-        super().__init__(features_extractor._observation_space, features_extractor.features_dim)
+    def __init__(
+        self, observation_space: spaces.Space, features_extractor: BaseFeaturesExtractor, normalizer: RunningObsNormalizer
+    ):
+        super().__init__(observation_space, features_extractor.features_dim)
         self.extractor = features_extractor
         self.normalizer = normalizer
 
@@ -425,7 +428,7 @@ class CGACPolicy(BasePolicy):
         features_extractor = super().make_features_extractor()
         if self.obs_normalizer is None:
             return features_extractor
-        return NormalizedFeaturesExtractor(features_extractor, self.obs_normalizer)
+        return NormalizedFeaturesExtractor(self.observation_space, features_extractor, self.obs_normalizer)
 
     def update_obs_normalizer(self, obs: PyTorchObs, ok: np.ndarray) -> None:
         """
