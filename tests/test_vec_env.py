@@ -188,6 +188,8 @@ def test_random_first_episode(backend):
         for idx in np.flatnonzero(dones):
             assert infos[idx]["TimeLimit.truncated"]
             assert not np.array_equal(infos[idx]["terminal_observation"], new_obs[idx])
+            # Cut first episodes are not reported as episodes (rollout/ep_rew_mean), as Monitor does for SB3's VecEnvs
+            assert ("episode" in infos[idx]) == (lengths[idx] == limit)
             (later.append(lengths[idx]) if idx in first else first.__setitem__(idx, lengths[idx]))
             lengths[idx] = 0
         obs = new_obs

@@ -137,7 +137,9 @@ class GymnasiumVecEnv(VecEnv):
                 info = step_infos[idx]
                 info["terminal_observation"] = terminal_rows[row]
                 info["TimeLimit.truncated"] = bool(truncated[idx] and not terminated[idx])
-                info["episode"] = {"r": float(self._episode_returns[idx]), "l": int(self._episode_lengths[idx]), "t": elapsed}
+                if cut is None or not cut[idx]:  # like Monitor, which never sees the cut of a first episode
+                    episode = {"r": float(self._episode_returns[idx]), "l": int(self._episode_lengths[idx]), "t": elapsed}
+                    info["episode"] = episode
                 if "is_success" in final_infos and final_infos.get("_is_success", np.ones(self.num_envs, bool))[idx]:
                     info["is_success"] = final_infos["is_success"][idx]
             self._episode_returns[done_idx] = 0
