@@ -10,8 +10,9 @@ class RandomFirstEpisodeLength(gym.Wrapper):
     """
     Cut the first episode of the env at a random length, drawn uniformly from ``1..max_episode_steps``, as a
     time-limit truncation (``truncated=True``; SB3's VecEnvs then report ``TimeLimit.truncated`` with the
-    terminal observation, so CGAC bootstraps the value target as for any time limit). Later episodes are left
-    alone.
+    terminal observation, so CGAC bootstraps the value target as for any time limit). The episodes that follow
+    an episode end (the VecEnv's automatic resets) are left alone; any other reset (``env.reset()`` of the whole
+    VecEnv, which puts every env back at the same step) draws a new cut.
 
     Why: envs built and reset together hit their time limits together, so a few steps after every synchronised
     reset CGAC's window of recent steps holds only initial states (paper Sec. 4.2, "Policy-Value Coupling"). With
@@ -33,18 +34,22 @@ class RandomFirstEpisodeLength(gym.Wrapper):
                 "(env.spec.max_episode_steps). Pass max_episode_steps."
             )
         self.max_episode_steps = int(max_episode_steps)
-        # Steps left before the cut of the first episode; None once the first episode is over
+        # Steps left before the cut of the current episode; None when it runs to its end
         self._steps_left: int | None = None
-        self._first_episode = True
+        # Whether the last step ended the episode, so that the next reset is an automatic one
+        self._episode_ended = False
+        # An own generator: drawing from the env's would change the env's later episodes
+        self._rng: np.random.Generator | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(seed=seed, options=options)
-        if self._first_episode:
-            # An own generator: drawing from the env's would change the env's later episodes
-            self._steps_left = int(np.random.default_rng(seed).integers(1, self.max_episode_steps + 1))
-            self._first_episode = False
-        else:
+        if self._episode_ended:
             self._steps_left = None
+        else:
+            if seed is not None or self._rng is None:
+                self._rng = np.random.default_rng(seed)
+            self._steps_left = int(self._rng.integers(1, self.max_episode_steps + 1))
+        self._episode_ended = False
         return obs, info
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
@@ -53,4 +58,5 @@ class RandomFirstEpisodeLength(gym.Wrapper):
             self._steps_left -= 1
             if self._steps_left == 0 and not (terminated or truncated):
                 truncated = True
+        self._episode_ended = bool(terminated or truncated)
         return obs, reward, terminated, truncated, info

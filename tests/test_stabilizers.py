@@ -118,6 +118,23 @@ def test_random_first_episode_length():
     assert cuts[0] == cuts[1]
 
 
+def test_random_first_episode_length_after_a_full_reset():
+    """A reset of the whole VecEnv (learn() resets it again) puts the envs back in step: it draws new cuts."""
+    env = make_vec_env("Pendulum-v1", n_envs=16, seed=0, wrapper_class=RandomFirstEpisodeLength)
+    for _ in range(2):  # reset twice, as a user checking the observations and then learn() would
+        env.reset()
+    for _ in range(5):
+        env.step(np.zeros((16, 1), np.float32))
+    env.reset()  # mid-episode
+    cuts = [env.envs[idx]._steps_left for idx in range(16)]
+    assert None not in cuts and len(set(cuts)) > 8
+    first_ends = np.zeros(16, dtype=int)
+    for step in range(1, 201):
+        _, _, dones, _ = env.step(np.zeros((16, 1), np.float32))
+        first_ends[(first_ends == 0) & dones] = step
+    assert len(set(first_ends.tolist())) > 8
+
+
 def test_random_first_episode_length_needs_a_time_limit():
     class NoLimit(gym.Env):
         observation_space = gym.spaces.Box(-1, 1, (1,))
