@@ -3,6 +3,7 @@ from typing import Any, ClassVar, TypeVar
 
 from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, TensorObs, TerminalObservations, sanitize_observations
 from sb3_cgac.callbacks import EntropyScheduleCallback, ProgressEntropySchedule, RewardEntropySchedule
+from sb3_cgac.losses import CRITIC_LOSSES, actor_loss, clip_gradient_outliers, critic_loss
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 
 import numpy as np
@@ -13,12 +14,12 @@ from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor, polyak_update, update_learning_rate
+from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnv
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
 
-CRITIC_LOSSES = ("huber", "mse")
+UPDATE_PRECISIONS: dict[str, th.dtype | None] = {"float32": None, "bfloat16": th.bfloat16}
 ENT_COEF_CLAMPS = (True, False, "above_target")
 ENTROPY_SCHEDULES: dict[str, type[EntropyScheduleCallback]] = {
     "reward": RewardEntropySchedule,
@@ -95,6 +96,12 @@ class CGAC(OnPolicyAlgorithm):
     :param clip_actor_gradient_outliers: Clip outliers of dQ/da in the actor update, as the paper's code can:
         when the mean over action dims of max|g| / median|g| exceeds twice its running average, each dim of
         dQ/da is clamped to its [50th, 95th] percentile range over the batch
+    :param compile_updates: Compile the losses of the critic and actor updates (forward and backward passes) with
+        ``torch.compile``: True, or a dict of ``torch.compile`` keyword arguments (e.g. ``{"mode": "max-autotune"}``).
+        The first updates take a while to compile (a C++ compiler is needed on CPU). Not with
+        ``clip_actor_gradient_outliers``, whose actor update stays uncompiled
+    :param update_precision: ``"float32"``, or ``"bfloat16"`` to run the networks of the updates under bfloat16
+        autocast (CUDA, or CPUs with AVX512-BF16 or AMX); losses, optimizers and collection stay in float32
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -147,6 +154,8 @@ class CGAC(OnPolicyAlgorithm):
         max_grad_norm: float = 20.0,
         actor_max_grad_norm: float | None = None,
         clip_actor_gradient_outliers: bool = False,
+        compile_updates: bool | dict[str, Any] = False,
+        update_precision: str = "float32",
         rollout_buffer_class: type[CGACRolloutBuffer] | None = None,
         rollout_buffer_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -199,6 +208,8 @@ class CGAC(OnPolicyAlgorithm):
         self.critic_loss = critic_loss
         self.actor_max_grad_norm = actor_max_grad_norm
         self.clip_actor_gradient_outliers = clip_actor_gradient_outliers
+        self.compile_updates = compile_updates
+        self.update_precision = update_precision
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
         self.rollout_buffer_kwargs = rollout_buffer_kwargs or {}
         self.log_ent_coef: th.Tensor | None = None
@@ -256,6 +267,15 @@ class CGAC(OnPolicyAlgorithm):
                 f"CGAC: unknown ent_coef_monotone {self.ent_coef_monotone!r}; choose True (the paper's clamp: alpha never "
                 "increases), 'above_target' (no increase while the entropy is at or above its target) or False (free)."
             )
+        if self.update_precision not in UPDATE_PRECISIONS:
+            raise ValueError(
+                f"CGAC: unknown update_precision {self.update_precision!r}; choose one of {tuple(UPDATE_PRECISIONS)}."
+            )
+        if not isinstance(self.compile_updates, (bool, dict)):
+            raise ValueError(
+                f"CGAC: compile_updates must be True, False or a dict of torch.compile keyword arguments, got "
+                f"{self.compile_updates!r}."
+            )
         if self.critic_loss not in CRITIC_LOSSES:
             raise ValueError(f"CGAC: unknown critic_loss {self.critic_loss!r}; choose one of {CRITIC_LOSSES}.")
         if self.entropy_schedule is not None and self.entropy_schedule not in ENTROPY_SCHEDULES:
@@ -312,6 +332,7 @@ class CGAC(OnPolicyAlgorithm):
         self._check_action_space(self.action_space)
         self._setup_batch_size()
         self._setup_averaging()
+        self._setup_update_functions()
 
         buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
         self.rollout_buffer = buffer_class(
@@ -335,7 +356,7 @@ class CGAC(OnPolicyAlgorithm):
         if learn_alpha:
             # Optimise log(alpha), as SB3's SAC does
             self.log_ent_coef = th.log(th.ones(1, device=self.device) * init_alpha).requires_grad_(True)
-            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=10 * self.lr_schedule(1))
+            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=10 * self.lr_schedule(1), fused=True)
         else:
             self.ent_coef_tensor = th.tensor(init_alpha, device=self.device)
         # Running average of the max/median ratio of dQ/da (actor-gradient outlier clipping); the paper's code starts at 100
@@ -363,11 +384,26 @@ class CGAC(OnPolicyAlgorithm):
         self._tau = self.tau if self.tau is not None else 1.0 - (1.0 - PAPER_TAU) ** exponent
         self._policy_tau = self.policy_tau if self.policy_tau is not None else 1.0 - (1.0 - PAPER_POLICY_TAU) ** exponent
 
+    def _setup_update_functions(self) -> None:
+        self._autocast_dtype = UPDATE_PRECISIONS[self.update_precision]
+        self._critic_loss_fn, self._actor_loss_fn = critic_loss, actor_loss
+        if self.compile_updates:
+            compile_kwargs = self.compile_updates if isinstance(self.compile_updates, dict) else {}
+            self._critic_loss_fn = th.compile(critic_loss, **compile_kwargs)
+            self._actor_loss_fn = th.compile(actor_loss, **compile_kwargs)
+
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
         self.actor_avg = self.policy.actor_avg
         self.critic = self.policy.critic
         self.critic_target = self.policy.critic_target
+        # Parameter lists of the update loop, gathered once (module traversals cost more than the small nets' ops)
+        self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
+        self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
+        self._averaged_parameters: tuple[list[th.Tensor], list[th.Tensor]] = (
+            list(self.critic_target.parameters()),
+            list(self.actor_avg.parameters()),
+        )
 
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         if self.entropy_schedule is not None:
@@ -504,66 +540,55 @@ class CGAC(OnPolicyAlgorithm):
             )
 
     def _critic_step(self, data: CGACSamples, weight_sum: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        q_values = self.critic(data.observations, data.actions)
-        critic_loss = sum(self._critic_loss(q.squeeze(-1), data.returns, data.weights) for q in q_values) / weight_sum
+        critic_loss, q_mean = self._critic_loss_fn(
+            self.critic,
+            data.observations,
+            data.actions,
+            data.returns,
+            data.weights,
+            weight_sum,
+            self.critic_loss,
+            self._autocast_dtype,
+        )
         self.critic.optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()  # type: ignore[union-attr]
-        grad_norm = th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+        critic_loss.backward()
+        grad_norm = th.nn.utils.clip_grad_norm_(self._critic_parameters, self.max_grad_norm)
         self.critic.optimizer.step()
-        return critic_loss.detach(), q_values[0].detach().mean(), grad_norm  # type: ignore[union-attr]
-
-    def _critic_loss(self, q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor) -> th.Tensor:
-        """Sum over the batch of the per-sample loss of one critic (paper Eq. 8)."""
-        delta = (q_values - returns) * weights
-        if self.critic_loss == "mse":
-            return (delta**2).sum()
-        # Adaptive Huber of the paper's code: squared below 4x the batch median |delta|, linear above
-        # (continuous at the threshold), so that a few huge target errors cannot dominate the update
-        abs_delta = delta.abs()
-        threshold = 4.0 * abs_delta.detach().median()
-        linear = 2.0 * threshold * abs_delta - threshold**2
-        return th.where(abs_delta < threshold, delta**2, linear).sum()
-
-    def _clip_dq_da(self, dq_da: th.Tensor) -> th.Tensor:
-        # Outlier clipping of the paper's code, without a device sync
-        abs_grad = dq_da.abs()
-        ratio = (abs_grad.max(dim=0).values / abs_grad.median(dim=0).values.clamp_min(1e-12)).mean()
-        self.gradient_ratio_average = 0.95 * self.gradient_ratio_average + 0.05 * ratio
-        quantiles = th.quantile(dq_da, th.tensor([0.5, 0.95], device=dq_da.device), dim=0)
-        clipped = th.clamp(dq_da, min=quantiles[0], max=quantiles[1])
-        return th.where(ratio > 2.0 * self.gradient_ratio_average, clipped, dq_da)
+        return critic_loss.detach(), q_mean, grad_norm
 
     def _actor_step(
         self, data: CGACSamples, weight_sum: th.Tensor, target_entropy: float
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor | None]:
-        actions_pi, log_prob = self.actor.action_log_prob(data.observations)
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.log_ent_coef is not None else self.ent_coef_tensor
-
         # Critic gradients are not needed for the actor loss (paper Eq. 7): skip their computation
-        for q_net in self.critic.q_networks:
-            q_net.requires_grad_(False)
-        min_q_pi = th.cat(self.critic(data.observations, actions_pi), dim=1).min(dim=1).values
+        self.critic.set_q_requires_grad(False)
         if self.clip_actor_gradient_outliers:
+            actions_pi, log_prob = self.actor.action_log_prob(data.observations)
+            min_q_pi = self.critic.q_values(data.observations, actions_pi).min(dim=0).values
             q_objective = (min_q_pi * data.weights).sum() / weight_sum
-            dq_da = self._clip_dq_da(th.autograd.grad(q_objective, actions_pi, retain_graph=True)[0])
+            dq_da, self.gradient_ratio_average = clip_gradient_outliers(
+                th.autograd.grad(q_objective, actions_pi, retain_graph=True)[0], self.gradient_ratio_average
+            )
             # Surrogate whose gradient through the actions is the clipped dQ/da
             actor_loss = (ent_coef * log_prob * data.weights).sum() / weight_sum - (dq_da.detach() * actions_pi).sum()
+            log_prob = log_prob.detach()
         else:
-            actor_loss = ((ent_coef * log_prob - min_q_pi) * data.weights).sum() / weight_sum
+            actor_loss, log_prob = self._actor_loss_fn(
+                self.actor, self.critic, data.observations, data.weights, weight_sum, ent_coef, self._autocast_dtype
+            )
         self.actor.optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()
-        for q_net in self.critic.q_networks:
-            q_net.requires_grad_(True)
+        self.critic.set_q_requires_grad(True)
         if self.actor_max_grad_norm is not None:
-            grad_norm = th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.actor_max_grad_norm)
+            grad_norm = th.nn.utils.clip_grad_norm_(self._actor_parameters, self.actor_max_grad_norm)
         else:
-            grad_norm = th.nn.utils.get_total_norm([param.grad for param in self.actor.parameters() if param.grad is not None])
+            grad_norm = th.nn.utils.get_total_norm([param.grad for param in self._actor_parameters if param.grad is not None])
         self.actor.optimizer.step()
 
         ent_coef_loss = None
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             # Eq. 12: raise alpha when the entropy is below the target -beta*|A|, lower it above
-            entropy_gap = ((log_prob.detach() + target_entropy) * data.weights).sum() / weight_sum
+            entropy_gap = ((log_prob + target_entropy) * data.weights).sum() / weight_sum
             ent_coef_loss = -(self.log_ent_coef * entropy_gap).sum()
             previous = self.log_ent_coef.detach().clone()
             self.ent_coef_optimizer.zero_grad(set_to_none=True)
@@ -581,8 +606,15 @@ class CGAC(OnPolicyAlgorithm):
                         clamped = th.where(entropy_gap > 0, self.log_ent_coef, clamped)
                     self.log_ent_coef.copy_(clamped)
             ent_coef_loss = ent_coef_loss.detach()
-        entropy = -(log_prob.detach() * data.weights).sum() / weight_sum
+        entropy = -(log_prob * data.weights).sum() / weight_sum
         return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
+
+    @th.no_grad()
+    def _polyak_updates(self) -> None:
+        # target <- (1 - tau) * target + tau * online, all parameters of a network in one foreach call
+        critic_target, actor_avg = self._averaged_parameters
+        th._foreach_lerp_(critic_target, self._critic_parameters, self._tau)
+        th._foreach_lerp_(actor_avg, self._actor_parameters, self._policy_tau)
 
     def _decayed(self, learning_rate: float) -> float:
         # The authors' linear decay towards final_learning_rate, counted in iterations
@@ -622,8 +654,7 @@ class CGAC(OnPolicyAlgorithm):
                 actor_loss, grad_norm, entropy, ent_coef_loss = self._actor_step(data, weight_sum, target_entropy)
                 ent_coef_loss = ent_coef_loss if ent_coef_loss is not None else th.zeros_like(actor_loss)
                 actor_stats.append(th.stack([actor_loss, grad_norm, entropy, ent_coef_loss]))
-                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self._tau)
-                polyak_update(self.actor.parameters(), self.actor_avg.parameters(), self._policy_tau)
+                self._polyak_updates()
 
         self.policy.set_training_mode(False)
         self._check_finite_parameters()
@@ -653,10 +684,11 @@ class CGAC(OnPolicyAlgorithm):
         return float(self.ent_coef_tensor.item())
 
     def _check_finite_parameters(self) -> None:
-        params: list[th.Tensor] = [*self.actor.parameters(), *self.critic.parameters()]
+        params: list[th.Tensor] = [*self._actor_parameters, *self._critic_parameters]
         if self.log_ent_coef is not None:
             params.append(self.log_ent_coef)
-        if not bool(th.stack([param.detach().isfinite().all() for param in params]).all()):
+        # One foreach call: a norm is finite exactly when its tensor is (up to overflow, itself a failure)
+        if not bool(th.stack(th._foreach_norm([param.detach() for param in params])).isfinite().all()):
             raise RuntimeError(
                 f"CGAC: network parameters became NaN/Inf after {self._n_updates} critic updates; training cannot go on. "
                 "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
@@ -697,6 +729,12 @@ class CGAC(OnPolicyAlgorithm):
             "_rollout_obs",
             "_entropy_schedule_callback",
             "_warned_synchronised_resets",
+            "_autocast_dtype",
+            "_critic_loss_fn",
+            "_actor_loss_fn",
+            "_critic_parameters",
+            "_actor_parameters",
+            "_averaged_parameters",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -2,11 +2,13 @@
 
 from typing import Any
 
+from sb3_cgac.critics import CGACCritic, xavier_init
+
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
-from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
@@ -23,14 +25,6 @@ LOG_STD_MAX = 2
 LOG_STD_MIN = -20
 # The authors' code clips normalised observations at +-5
 OBS_CLIP = 5.0
-
-
-def xavier_init(module: nn.Module) -> None:
-    """Xavier-uniform weights and zero biases for every linear layer (the initialisation of the paper's code)."""
-    for layer in module.modules():
-        if isinstance(layer, nn.Linear):
-            nn.init.xavier_uniform_(layer.weight)
-            nn.init.zeros_(layer.bias)
 
 
 class RunningObsNormalizer(nn.Module):
@@ -95,60 +89,6 @@ class NormalizedFeaturesExtractor(BaseFeaturesExtractor):
 
     def forward(self, observations: th.Tensor) -> th.Tensor:
         return self.extractor(self.normalizer(observations))
-
-
-class CGACCritic(ContinuousCritic):
-    """
-    SB3's twin Q networks (``ContinuousCritic``), optionally with LayerNorm after every hidden linear layer
-    (before the activation), a stabiliser of critic-gradient methods (FastTD3, BRO, SimBa, PQN).
-
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param net_arch: Network architecture
-    :param features_extractor: Network to extract features
-    :param features_dim: Number of features
-    :param activation_fn: Activation function
-    :param normalize_images: Whether to normalize images or not, dividing by 255.0
-    :param n_critics: Number of critic networks to create
-    :param share_features_extractor: Whether the features extractor is shared with the actor
-    :param layer_norm: Whether to put LayerNorm after every hidden linear layer
-    """
-
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        net_arch: list[int],
-        features_extractor: BaseFeaturesExtractor,
-        features_dim: int,
-        activation_fn: type[nn.Module] = nn.ELU,
-        normalize_images: bool = True,
-        n_critics: int = 2,
-        share_features_extractor: bool = False,
-        layer_norm: bool = False,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            net_arch,
-            features_extractor,
-            features_dim,
-            activation_fn,
-            normalize_images,
-            n_critics,
-            share_features_extractor,
-        )
-        self.layer_norm = layer_norm
-        if layer_norm:
-            for idx, q_net in enumerate(self.q_networks):
-                assert isinstance(q_net, nn.Sequential)
-                layers: list[nn.Module] = []
-                for layer in q_net:
-                    layers.append(layer)
-                    if isinstance(layer, nn.Linear) and layer is not q_net[-1]:
-                        layers.append(nn.LayerNorm(layer.out_features))
-                self.q_networks[idx] = nn.Sequential(*layers)
-                self.add_module(f"qf{idx}", self.q_networks[idx])
 
 
 class Actor(BasePolicy):
@@ -291,12 +231,15 @@ class CGACPolicy(BasePolicy):
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
     :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
     :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+        (Adam and AdamW get ``fused=True`` unless ``fused`` or ``foreach`` is given: one kernel per step)
     :param n_critics: Number of Q networks (the value target and the actor use their minimum, paper Eq. 11)
     :param share_features_extractor: Whether actor and critic share the features extractor
     :param normalize_observations: Normalise observations with running statistics inside the policy, clipped at
         +-5 (the authors' code always does), so that no ``VecNormalize`` is needed; the statistics are updated
         from the collected observations and saved with the model (Box observations only)
     :param critic_layer_norm: Whether to put LayerNorm after every hidden layer of the critics
+    :param stack_critics: Whether to evaluate the critics as one stacked network (one batched matmul per layer for
+        all of them) instead of one network after the other
     """
 
     actor: Actor
@@ -323,6 +266,7 @@ class CGACPolicy(BasePolicy):
         share_features_extractor: bool = False,
         normalize_observations: bool = False,
         critic_layer_norm: bool = False,
+        stack_critics: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -374,13 +318,15 @@ class CGACPolicy(BasePolicy):
             "n_critics": n_critics,
             "share_features_extractor": share_features_extractor,
             "layer_norm": critic_layer_norm,
+            "use_xavier_init": use_xavier_init,
+            "stacked": stack_critics,
         }
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
         self.actor = self.make_actor()
         self.actor.optimizer = self.optimizer_class(  # type: ignore[call-arg]
-            self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+            self.actor.parameters(), lr=lr_schedule(1), **self._optimizer_kwargs()
         )
         if self.share_features_extractor:
             self.critic = self.make_critic(features_extractor=self.actor.features_extractor)
@@ -390,7 +336,7 @@ class CGACPolicy(BasePolicy):
             self.critic = self.make_critic(features_extractor=None)
             critic_parameters = list(self.critic.parameters())
         self.critic.optimizer = self.optimizer_class(  # type: ignore[call-arg]
-            critic_parameters, lr=lr_schedule(1), **self.optimizer_kwargs
+            critic_parameters, lr=lr_schedule(1), **self._optimizer_kwargs()
         )
 
         # Polyak-averaged copies, never trained by gradient and always in eval mode
@@ -401,6 +347,12 @@ class CGACPolicy(BasePolicy):
         for averaged in (self.actor_avg, self.critic_target):
             averaged.requires_grad_(False)
             averaged.set_training_mode(False)
+
+    def _optimizer_kwargs(self) -> dict[str, Any]:
+        # Adam's fused implementation (CPU and CUDA) takes a fraction of the per-tensor loop's time
+        if self.optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(self.optimizer_kwargs):
+            return {"fused": True, **self.optimizer_kwargs}
+        return self.optimizer_kwargs
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -420,6 +372,7 @@ class CGACPolicy(BasePolicy):
                 share_features_extractor=self.share_features_extractor,
                 normalize_observations=self.normalize_observations,
                 critic_layer_norm=self.critic_kwargs["layer_norm"],
+                stack_critics=self.critic_kwargs["stacked"],
             )
         )
         return data
@@ -447,11 +400,7 @@ class CGACPolicy(BasePolicy):
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> CGACCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        critic = CGACCritic(**critic_kwargs)
-        if self.use_xavier_init:
-            for q_net in critic.q_networks:
-                xavier_init(q_net)
-        return critic.to(self.device)
+        return CGACCritic(**critic_kwargs).to(self.device)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)
@@ -469,7 +418,7 @@ class CGACPolicy(BasePolicy):
         :param actions: Squashed actions, shape (B, action_dim)
         :return: Target Q-values of shape (B,)
         """
-        return th.cat(self.critic_target(obs, actions), dim=1).min(dim=1).values
+        return self.critic_target.q_values(obs, actions).min(dim=0).values
 
     def set_training_mode(self, mode: bool) -> None:
         """
@@ -506,6 +455,7 @@ class MultiInputPolicy(CGACPolicy):
     :param share_features_extractor: Whether actor and critic share the features extractor
     :param normalize_observations: Not supported for Dict observations (use ``VecNormalize``)
     :param critic_layer_norm: Whether to put LayerNorm after every hidden layer of the critics
+    :param stack_critics: Whether to evaluate the critics as one stacked network
     """
 
     def __init__(
@@ -527,6 +477,7 @@ class MultiInputPolicy(CGACPolicy):
         share_features_extractor: bool = False,
         normalize_observations: bool = False,
         critic_layer_norm: bool = False,
+        stack_critics: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -546,4 +497,5 @@ class MultiInputPolicy(CGACPolicy):
             share_features_extractor,
             normalize_observations,
             critic_layer_norm,
+            stack_critics,
         )

@@ -55,3 +55,33 @@ def test_collection_profile_tiny_budget():
         assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in part3), name
     assert any("step counts spread over" in line for line in part3)
     assert any(line.strip().startswith("pinned threads (thread_affinity_offset=") for line in part3)
+
+
+def table_rows(stdout: str, first_cell: str) -> list[list[str]]:
+    return [
+        [cell.strip() for cell in line.strip("|").split("|")]
+        for line in stdout.splitlines()
+        if line.startswith(f"| {first_cell}")
+    ]
+
+
+def test_update_benchmark_tiny_budget():
+    command = [sys.executable, str(ROOT / "benchmarks" / "updates.py"), "--batch-sizes", "64", "--critics", "16,16",
+               "--actor", "16", "--paths", "default", "bf16", "stacked", "--rounds", "1", "--chunk", "0.05",
+               "--warmup", "1", "--threads", "1", "--baseline", "HEAD"]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = table_rows(result.stdout, "64")
+    assert [row[2] for row in rows] == ["CGAC default", "CGAC bf16", "CGAC stacked", "SB3 SAC", "CGAC at HEAD"]
+    for row in rows:
+        assert float(row[3]) > 0 and float(row[7]) > 0  # ms per step, GFLOP/s
+    assert rows[3][4] == "1.00" and rows[0][5] == "1.00" and rows[4][6] == "1.00"  # each ratio's reference
+
+
+def test_update_benchmark_end_to_end():
+    command = [sys.executable, str(ROOT / "benchmarks" / "updates.py"), "--e2e", "Pendulum-v1", "--paths", "default",
+               "--rounds", "1", "--chunk", "0.05", "--warmup", "1", "--threads", "1"]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = table_rows(result.stdout, "Pendulum-v1")
+    assert len(rows) == 1 and float(rows[0][2].replace(",", "")) > 0

@@ -23,14 +23,16 @@ def state_of(model: CGAC) -> dict[str, th.Tensor]:
     return params
 
 
-@pytest.mark.parametrize("ent_coef", ["auto_0.1", 0.05])
-def test_save_load(tmp_path: pathlib.Path, ent_coef):
+@pytest.mark.parametrize("ent_coef, stack_critics", [("auto_0.1", False), (0.05, False), ("auto_0.1", True)])
+def test_save_load(tmp_path: pathlib.Path, ent_coef, stack_critics):
     env = make_env()
-    model = CGAC("MlpPolicy", env, ent_coef=ent_coef, policy_tau=0.1, **SMALL)
+    policy_kwargs = dict(net_arch=[16, 16], stack_critics=stack_critics)
+    model = CGAC("MlpPolicy", env, ent_coef=ent_coef, policy_tau=0.1, seed=0, policy_kwargs=policy_kwargs)
     model.learn(600)
     # Averaged copies differ from the trained networks, so that a mix-up would show
     assert not th.allclose(model.actor.mu.weight, model.actor_avg.mu.weight)
-    assert not th.allclose(model.critic.qf0[0].weight, model.critic_target.qf0[0].weight)
+    critic_params = zip(model.critic.parameters(), model.critic_target.parameters(), strict=True)
+    assert not all(th.allclose(param, target) for param, target in critic_params)
 
     obs = env.reset()
     before = state_of(model)

@@ -1,0 +1,92 @@
+"""The update step's paths: the default float32 path, bfloat16 autocast and torch.compile give the same updates."""
+
+from sb3_cgac import CGAC
+from sb3_cgac.losses import q_regression_loss
+
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), seed=0, n_steps=4, buffer_window=8, batch_size=64)
+
+
+def filled_model(**kwargs) -> CGAC:
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16, seed=0), **{**SMALL, **kwargs})
+    model.learn(16 * 8)  # fills the window
+    return model
+
+
+def one_update(model: CGAC) -> dict[str, th.Tensor]:
+    """Critic and actor losses of one update from the model's current state, on a fixed minibatch."""
+    th.manual_seed(1)
+    data = model.rollout_buffer.sample(64)
+    weight_sum = data.weights.sum().clamp_min(1.0)
+    critic_loss, _, _ = model._critic_step(data, weight_sum)
+    actor_loss, _, entropy, _ = model._actor_step(data, weight_sum, target_entropy=-1.0)
+    return {"critic_loss": critic_loss, "actor_loss": actor_loss, "entropy": entropy}
+
+
+def test_q_regression_loss():
+    returns, weights = th.zeros(4), th.tensor([1.0, 1.0, 1.0, 0.0])
+    q_values = th.tensor([[1.0, 1.0, 2.0, 100.0], [1.0, 1.0, 10.0, 7.0]])  # (n_critics, batch)
+    assert q_regression_loss(q_values, returns, weights, "mse") == pytest.approx((1 + 1 + 4) + (1 + 1 + 100))
+    # Huber, per critic: 4x the median |delta| (lower median of [0, 1, 1, 2] and [0, 1, 1, 10]: 1) is 4; |delta| = 10 is
+    # above it and counts linearly, 2 * 4 * 10 - 4**2 = 64 (the excluded sample has delta = 0)
+    assert q_regression_loss(q_values, returns, weights, "huber") == pytest.approx((1 + 1 + 4) + (1 + 1 + 64))
+
+
+def test_bfloat16_updates_match_float32():
+    reference, bf16 = filled_model(), filled_model(update_precision="bfloat16")
+    losses, losses_bf16 = one_update(reference), one_update(bf16)
+    for key, value in losses.items():
+        # bfloat16 keeps 8 bits of mantissa: about 2-3 significant digits
+        assert losses_bf16[key].item() == pytest.approx(value.item(), rel=0.05, abs=0.05), key
+
+
+def test_compiled_updates_match_eager():
+    reference, compiled = filled_model(), filled_model(compile_updates=True)
+    for _ in range(2):  # the first call compiles, the second runs the compiled code
+        losses, losses_compiled = one_update(reference), one_update(compiled)
+        for key, value in losses.items():
+            assert losses_compiled[key].item() == pytest.approx(value.item(), rel=1e-4, abs=1e-5), key
+    for param, param_compiled in zip(reference.policy.parameters(), compiled.policy.parameters(), strict=True):
+        th.testing.assert_close(param, param_compiled, rtol=1e-4, atol=1e-5)
+
+
+def test_adam_is_fused_by_default():
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16), **SMALL)
+    assert model.actor.optimizer.defaults["fused"] and model.critic.optimizer.defaults["fused"]
+    own = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16), policy_kwargs=dict(optimizer_kwargs=dict(foreach=True)))
+    assert not own.critic.optimizer.defaults["fused"] and own.critic.optimizer.defaults["foreach"]
+
+
+def test_stacked_critics_match_separate_critics():
+    # Same initial weights (the stack takes them from separately built networks) and the same updates to float rounding
+    # (each model trains right after it is built: the global torch RNG is seeded at construction)
+    models = []
+    for stack in (False, True):
+        model = filled_model(policy_kwargs=dict(net_arch=[32, 32], critic_layer_norm=True, stack_critics=stack))
+        model.learn(16 * 20, reset_num_timesteps=False)
+        models.append(model)
+    separate, stacked = models
+    assert stacked._n_updates == separate._n_updates > 20
+    # A stacked critic's state dict loads into separate critics (and back): compare in the separate layout
+    converted = CGAC(
+        "MlpPolicy",
+        make_vec_env("Pendulum-v1", n_envs=16),
+        **{**SMALL, **dict(policy_kwargs=dict(net_arch=[32, 32], critic_layer_norm=True))},
+    )
+    converted.policy.load_state_dict(stacked.policy.state_dict())
+    for (name, param), (_, param_converted) in zip(
+        separate.policy.state_dict().items(), converted.policy.state_dict().items(), strict=True
+    ):
+        th.testing.assert_close(param, param_converted, rtol=1e-4, atol=1e-5, msg=name)
+    back = CGAC(
+        "MlpPolicy",
+        make_vec_env("Pendulum-v1", n_envs=16),
+        **{**SMALL, **dict(policy_kwargs=dict(net_arch=[32, 32], critic_layer_norm=True, stack_critics=True))},
+    )
+    back.policy.load_state_dict(converted.policy.state_dict())
+    obs, actions = th.randn(5, 3), th.rand(5, 1) * 2 - 1
+    th.testing.assert_close(back.critic.q_values(obs, actions), stacked.critic.q_values(obs, actions))
+    th.testing.assert_close(back.critic(obs, actions)[1], stacked.critic(obs, actions)[1])
