@@ -22,10 +22,10 @@ def main() -> None:
     parser.add_argument("--save-path", default="cgac_pendulum")
     args = parser.parse_args()
 
-    # CGAC wants many parallel envs: it learns on-policy from a short window of all of them. Cutting each env's first
-    # episode at a random length keeps the envs from all resetting at the same steps (the window would then hold
-    # nothing but initial states)
-    env = make_vec_env("Pendulum-v1", n_envs=64, seed=args.seed, random_first_episode=True)
+    # CGAC wants many parallel envs: it learns on-policy from a short window of all of them. sb3_cgac's make_vec_env
+    # cuts each env's first episode at a random length, so that the envs do not all reset at the same steps (the
+    # window would then hold nothing but initial states)
+    env = make_vec_env("Pendulum-v1", n_envs=64, seed=args.seed)
     model = CGAC(
         "MlpPolicy",
         env,

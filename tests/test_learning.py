@@ -31,7 +31,7 @@ def zoo_hyperparams(env_id: str) -> tuple[int, bool, dict]:
 
 def reaches_threshold(model: CGAC, budget: int, seed: int) -> float:
     """Train until the averaged actor's deterministic evaluation reaches THRESHOLD; return the best evaluation."""
-    eval_env = make_vec_env("Pendulum-v1", n_envs=10, seed=1000 + seed)
+    eval_env = make_vec_env("Pendulum-v1", n_envs=10, seed=1000 + seed, random_first_episode=False)
     stop = StopTrainingOnRewardThreshold(reward_threshold=THRESHOLD)
     evaluation = EvalCallback(
         eval_env, eval_freq=10_000 // model.n_envs, n_eval_episodes=10, callback_on_new_best=stop, verbose=0

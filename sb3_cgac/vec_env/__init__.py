@@ -25,7 +25,7 @@ def make_vec_env(
     seed: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
     vec_env_kwargs: dict[str, Any] | None = None,
-    random_first_episode: bool = False,
+    random_first_episode: bool = True,
 ) -> VecEnv:
     """
     Build ``n_envs`` copies of ``env_id`` as an SB3 ``VecEnv`` with the chosen backend. Every backend gives
@@ -40,9 +40,11 @@ def make_vec_env(
     :param env_kwargs: Keyword arguments of the env constructor
     :param vec_env_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool,
         ``start_method`` for subproc, ``info_keys`` for the envpool and gymnasium adapters)
-    :param random_first_episode: Cut the first episode of every env at a random length, so that the envs do not
-        all reset at the same steps (``sb3_cgac.wrappers.RandomFirstEpisodeLength`` for SB3's VecEnvs, the adapters'
-        own ``random_first_episode`` for the others)
+    :param random_first_episode: Cut the first episode of every env at a random length (a time-limit truncation,
+        not reported as an episode), so that the envs do not all reset at the same steps: with envs in step, CGAC's
+        window periodically holds only initial states and its critic forgets the rest
+        (``sb3_cgac.wrappers.RandomFirstEpisodeLength`` for SB3's VecEnvs, the adapters' own
+        ``random_first_episode`` for the others). Evaluation envs do not need it
     :return: The vectorised env
     """
     env_kwargs = env_kwargs or {}
