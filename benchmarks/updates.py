@@ -298,8 +298,8 @@ def main() -> None:
     isa = [name for name in ("avx512f", "avx512_bf16", "amx_bf16") if f" {name}" in flags]
     print(
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores ({', '.join(isa) or 'no AVX-512'}), "
-        f"torch {th.__version__}, {args.threads} torch threads, device {args.device}, {args.activation} networks, "
-        f"actor {args.actor}\n"
+        f"torch {th.__version__}, {args.threads} torch threads, device {args.device}, "
+        + ("the entries' own networks\n" if args.e2e else f"{args.activation} networks, actor {args.actor}\n")
     )
     if args.e2e:
         print("| env | candidate | steps/s | speed / CGAC default's | speed / previous's |\n| --- | --- | --- | --- | --- |")

@@ -101,7 +101,8 @@ class CGAC(OnPolicyAlgorithm):
         The first updates take a while to compile (a C++ compiler is needed on CPU). Not with
         ``clip_actor_gradient_outliers``, whose actor update stays uncompiled
     :param update_precision: ``"float32"``, or ``"bfloat16"`` to run the networks of the updates under bfloat16
-        autocast (CUDA, or CPUs with AVX512-BF16 or AMX); losses, optimizers and collection stay in float32
+        autocast (CUDA, or CPUs with AVX512-BF16 or AMX); losses, optimizers and collection stay in float32, and so
+        does the actor update with ``clip_actor_gradient_outliers``
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -533,8 +534,8 @@ class CGAC(OnPolicyAlgorithm):
             warnings.warn(
                 "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
                 "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
-                "envs with sb3_cgac.vec_env.make_vec_env(..., random_first_episode=True), or pass "
-                "wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
+                "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
+                "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
                 UserWarning,
                 stacklevel=3,
             )
