@@ -18,8 +18,6 @@ same run. Timings are ratios measured here, never asserted anywhere.
 
 import argparse
 import functools
-import os
-import platform
 import tempfile
 import time
 import warnings
@@ -33,6 +31,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from timing import machine, rate, take_turns  # benchmarks/timing.py
 
 LEGEND = """\
 raw: vec-env steps/s with random actions. collect: CGAC collection only (averaged-actor actions and buffer writes),
@@ -101,25 +100,6 @@ class StopAfter(BaseCallback):
         return time.perf_counter() - self.start < self.seconds
 
 
-def alternate(steps: dict[str, Callable[[], Any]], n_envs: int, seconds: float, chunk: float) -> dict[str, float]:
-    """
-    Steps/s of each function, measured in alternating chunks of ``chunk`` seconds until each has run ``seconds``
-    in all: this machine's speed drifts by +-20% within seconds, and fine alternation gives every function the
-    same share of fast and slow moments.
-    """
-    elapsed = dict.fromkeys(steps, 0.0)
-    counts = dict.fromkeys(steps, 0)
-    while min(elapsed.values()) < seconds:
-        for name, step in steps.items():
-            start = now = time.perf_counter()
-            while now - start < chunk:
-                step()
-                counts[name] += 1
-                now = time.perf_counter()
-            elapsed[name] += now - start
-    return {name: counts[name] * n_envs / elapsed[name] for name in steps}
-
-
 def raw_and_collection(env: VecEnv, seconds: float, chunk: float) -> tuple[float, float, int, int]:
     """Raw vec-env steps/s (random actions) and CGAC collection-only steps/s, measured alternately on the same env."""
     model = CGAC("MlpPolicy", env, seed=0)
@@ -129,17 +109,19 @@ def raw_and_collection(env: VecEnv, seconds: float, chunk: float) -> tuple[float
     actions = np.random.default_rng(0).uniform(-1, 1, (16, env.num_envs, *action_shape)).astype(np.float32)
     counter = iter(range(10**12))
 
-    def raw_step() -> None:
+    def raw_step() -> int:
         env.step(actions[next(counter) % 16])
+        return env.num_envs
 
-    def collect_step() -> None:
+    def collect_step() -> int:
         model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=1)
+        return env.num_envs
 
     steps = {"raw": raw_step, "collect": collect_step}
-    alternate(steps, env.num_envs, 0.5, chunk)  # warm-up
-    rates = alternate(steps, env.num_envs, seconds, chunk)
+    take_turns(steps, chunk, seconds=0.5)  # warm-up
+    turns = take_turns(steps, chunk, seconds=seconds)
     buffer = model.rollout_buffer
-    return rates["raw"], rates["collect"], buffer.nbytes(), buffer.raw_transition_nbytes()
+    return rate(turns["raw"]), rate(turns["collect"]), buffer.nbytes(), buffer.raw_transition_nbytes()
 
 
 def end_to_end(env: VecEnv, seconds: float, device: str, **cgac_kwargs: Any) -> dict[str, float]:
@@ -237,8 +219,7 @@ def main() -> None:
         "",
         LEGEND,
         "",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, "
-        f"{th.get_num_threads()} torch threads, devices: {', '.join(devices)}.",
+        f"Machine: {machine(th.get_num_threads(), ', '.join(devices))}.",
         f"Command: python benchmarks/throughput.py --seconds {args.seconds:g} --chunk {args.chunk:g} "
         f"--e2e-seconds {args.e2e_seconds:g}"
         + (f" --envs {' '.join(args.envs)}" if args.envs != parser.get_default("envs") else "")

@@ -20,9 +20,9 @@ Timings are printed, never asserted.
 """
 
 import argparse
+import functools
 import itertools
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -30,6 +30,8 @@ import time
 from pathlib import Path
 from statistics import median
 from typing import Any
+
+from timing import machine, take_turns  # benchmarks/timing.py
 
 ROOT = Path(__file__).resolve().parents[1]
 OBS_DIM, ACTION_DIM = 17, 6  # HalfCheetah-v5's spaces
@@ -177,7 +179,8 @@ class Candidate:
     """A worker process and the times it reported."""
 
     def __init__(self, name: str, algo: str, worker_args: list[str], pythonpath: str | None = None):
-        self.name, self.algo, self.times = name, algo, []  # type: ignore[var-annotated]
+        self.name, self.algo = name, algo
+        self.times: list[float] = []  # seconds per unit of each turn
         environ = dict(os.environ)
         if pythonpath is not None:
             environ["PYTHONPATH"] = pythonpath + os.pathsep + environ.get("PYTHONPATH", "")
@@ -191,12 +194,12 @@ class Candidate:
                 return
         raise RuntimeError(f"{self.name}: the worker failed to start (see its error above)")
 
-    def run(self, n_steps: int) -> float:
-        self.process.stdin.write(f"{n_steps}\n")  # type: ignore[union-attr]
+    def run(self, units: int) -> int:
+        """Ask the worker for ``units`` units of work; returns how many it did."""
+        self.process.stdin.write(f"{units}\n")  # type: ignore[union-attr]
         self.process.stdin.flush()  # type: ignore[union-attr]
-        seconds, units = self.process.stdout.readline().split()  # type: ignore[union-attr]
-        self.times.append(float(seconds) / int(units))
-        return float(seconds)
+        _, done = self.process.stdout.readline().split()  # type: ignore[union-attr]
+        return int(done)
 
     def close(self) -> None:
         self.process.stdin.close()  # type: ignore[union-attr]
@@ -249,17 +252,16 @@ def measure_e2e(args: argparse.Namespace, env_id: str, baseline: str | None) -> 
 
 
 def run_rounds(candidates: list[Candidate], args: argparse.Namespace) -> None:
-    """Start the workers, size their chunks to about ``--chunk`` seconds, then let them take turns."""
+    """Start the workers, size one request to about ``--chunk`` seconds each, then let them take turns."""
     try:
         for candidate in candidates:
             candidate.wait_ready()
-        units = {}
+        sizing = take_turns({c.name: functools.partial(c.run, 1) for c in candidates}, chunk=0.0, rounds=1)
+        units = {name: max(1, round(args.chunk * done / seconds)) for name, [(done, seconds)] in sizing.items()}
+        work = {c.name: functools.partial(c.run, units[c.name]) for c in candidates}
+        turns = take_turns(work, chunk=0.0, rounds=args.rounds)  # one request per turn: it is sized to a chunk
         for candidate in candidates:
-            candidate.run(1)
-            units[candidate.name] = max(1, round(args.chunk / candidate.times.pop()))
-        for _ in range(args.rounds):
-            for candidate in candidates:
-                candidate.run(units[candidate.name])
+            candidate.times = [seconds / done for done, seconds in turns[candidate.name]]
     finally:
         for candidate in candidates:
             candidate.close()
@@ -292,13 +294,8 @@ def main() -> None:
         worker(args)
         return
 
-    import torch as th
-
-    flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
-    isa = [name for name in ("avx512f", "avx512_bf16", "amx_bf16") if f" {name}" in flags]
     print(
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores ({', '.join(isa) or 'no AVX-512'}), "
-        f"torch {th.__version__}, {args.threads} torch threads, device {args.device}, "
+        f"Machine: {machine(args.threads, args.device)}, "
         + ("the entries' own networks\n" if args.e2e else f"{args.activation} networks, actor {args.actor}\n")
     )
     if args.e2e:

@@ -1,13 +1,13 @@
 """Rolling-window rollout buffer for CGAC, with Q-GAE(lambda) value targets (paper Eq. 9-10)."""
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
-from stable_baselines3.common.utils import get_device
+from stable_baselines3.common.utils import get_device, obs_as_tensor
 
 TensorObs = th.Tensor | dict[str, th.Tensor]
 NumpyObs = np.ndarray | dict[str, np.ndarray]
@@ -47,6 +47,36 @@ def sanitize_observations(obs: NumpyObs) -> tuple[NumpyObs, np.ndarray]:
         ok = np.logical_and.reduce([key_ok for _, key_ok in cleaned.values()])
         return {key: value for key, (value, _) in cleaned.items()}, ok
     return _sanitize_array(obs)
+
+
+def observations_to_tensor(obs: Any, device: th.device) -> tuple[TensorObs, np.ndarray]:
+    """Sanitize a batch of numpy observations (see ``sanitize_observations``) and move it to ``device`` (no copy on CPU)."""
+    obs, ok = sanitize_observations(obs)
+    return obs_as_tensor(obs, device), ok
+
+
+def terminal_observations(infos: list[dict[str, Any]], env_indices: np.ndarray, device: th.device) -> TerminalObservations:
+    """
+    The real last observations of the envs cut by a time limit, from SB3's ``info["terminal_observation"]``.
+
+    :param infos: The infos of one step of the VecEnv
+    :param env_indices: The envs whose episode was truncated at that step
+    :param device: Device of the buffer
+    """
+    terminal = [infos[idx].get("terminal_observation") for idx in env_indices]
+    if any(obs is None for obs in terminal):
+        raise ValueError(
+            "CGAC: the env reported a time-limit truncation (info['TimeLimit.truncated']) without "
+            "info['terminal_observation'], which CGAC needs to bootstrap the value target. Use an SB3 VecEnv "
+            "(DummyVecEnv, SubprocVecEnv) or one of sb3_cgac.vec_env's adapters, which provide it."
+        )
+    stacked: Any
+    if isinstance(terminal[0], dict):
+        stacked = {key: np.stack([obs[key] for obs in terminal]) for key in terminal[0]}
+    else:
+        stacked = np.stack(terminal)
+    obs, ok = observations_to_tensor(stacked, device)
+    return TerminalObservations(th.as_tensor(env_indices, device=device), obs, th.as_tensor(ok, device=device))
 
 
 def _sanitize_array(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

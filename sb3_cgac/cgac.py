@@ -1,38 +1,36 @@
 import warnings
 from typing import Any, ClassVar, TypeVar
 
-from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, TensorObs, TerminalObservations, sanitize_observations
-from sb3_cgac.callbacks import EntropyScheduleCallback, ProgressEntropySchedule, RewardEntropySchedule
-from sb3_cgac.losses import CRITIC_LOSSES, actor_loss, clip_gradient_outliers, critic_loss
+from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, observations_to_tensor, terminal_observations
+from sb3_cgac.callbacks import ENTROPY_SCHEDULES, EntropyScheduleCallback, with_entropy_schedule
+from sb3_cgac.hyperparameters import (
+    ENT_COEF_CLAMPS,
+    FEW_ENVS,
+    UPDATE_PRECISIONS,
+    check_action_space,
+    check_choice,
+    check_rates,
+    check_schedule,
+    decayed_learning_rate,
+    parse_ent_coef,
+    positive_int,
+    resolve_batch_size,
+    scaled_polyak_rates,
+)
+from sb3_cgac.losses import CRITIC_LOSSES, actor_loss, clamped_log_ent_coef, critic_loss, outlier_clipped_actor_loss
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
-from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor, update_learning_rate
+from stable_baselines3.common.utils import FloatSchedule, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnv
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
-
-UPDATE_PRECISIONS: dict[str, th.dtype | None] = {"float32": None, "bfloat16": th.bfloat16}
-ENT_COEF_CLAMPS = (True, False, "above_target")
-ENTROPY_SCHEDULES: dict[str, type[EntropyScheduleCallback]] = {
-    "reward": RewardEntropySchedule,
-    "progress": ProgressEntropySchedule,
-}
-# The paper's minibatch size, used when the window holds that many transitions
-PAPER_BATCH_SIZE = 4096
-# The paper's Polyak coefficients tau_Q and tau_pi, one update of each per 4096 new transitions (4096 envs, one
-# actor update per env step)
-PAPER_TAU, PAPER_POLICY_TAU = 0.005, 0.001
-PAPER_TRANSITIONS_PER_ACTOR_UPDATE = 4096
-# Fewer parallel envs than this gives CGAC too little state diversity (paper Sec. 4.2 and Fig. 3a-b)
-FEW_ENVS = 16
 
 
 class CGAC(OnPolicyAlgorithm):
@@ -169,7 +167,7 @@ class CGAC(OnPolicyAlgorithm):
     ):
         if env is not None and not isinstance(env, str):
             # Before SB3's own checks, which give less helpful messages
-            self._check_action_space(env.action_space)
+            check_action_space(env.action_space)
         super().__init__(
             policy,  # type: ignore[arg-type]
             env,
@@ -223,7 +221,7 @@ class CGAC(OnPolicyAlgorithm):
 
         self._check_hyperparameters()
         if self.env is not None:
-            self._check_action_space(self.action_space)
+            check_action_space(self.action_space)
         if _init_setup_model:
             self._setup_model()
             if self.n_envs < FEW_ENVS:
@@ -237,91 +235,34 @@ class CGAC(OnPolicyAlgorithm):
 
     def _check_hyperparameters(self) -> None:
         # Checks that do not depend on the env; each error says what is wrong and how to fix it
-        def positive_int(name: str, value: Any) -> None:
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"CGAC: {name} must be an integer >= 1, got {value!r}.")
-
-        positive_int("n_steps", self.n_steps)
-        positive_int("buffer_window", self.buffer_window)
-        positive_int("critic_updates_per_step", self.critic_updates_per_step)
-        positive_int("policy_delay", self.policy_delay)
+        check_schedule(self.n_steps, self.buffer_window, self.critic_updates_per_step, self.policy_delay)
+        for name, value in (("batch_size", self.batch_size), ("gae_horizon", self.gae_horizon)):
+            if value is not None:
+                positive_int(name, value)
+        check_rates(self.tau, self.policy_tau, self.gamma, self.gae_lambda)
         positive_int("lr_decay_iterations", self.lr_decay_iterations)
         if self.final_learning_rate is not None and not self.final_learning_rate >= 0:
             raise ValueError(f"CGAC: final_learning_rate must be >= 0 or None (no decay), got {self.final_learning_rate}.")
-        if self.batch_size is not None:
-            positive_int("batch_size", self.batch_size)
-        if self.gae_horizon is not None:
-            positive_int("gae_horizon", self.gae_horizon)
-        if self.n_steps > self.buffer_window:
-            raise ValueError(
-                f"CGAC: n_steps ({self.n_steps}) is larger than buffer_window ({self.buffer_window}): each iteration "
-                "writes n_steps new steps per env into a window of buffer_window steps. Lower n_steps or raise "
-                "buffer_window (n_steps == buffer_window gives a fresh buffer every rollout)."
-            )
-        for name, value in (("tau", self.tau), ("policy_tau", self.policy_tau)):
-            if value is not None and not 0.0 < value <= 1.0:
-                raise ValueError(f"CGAC: {name} must be in (0, 1] (1 turns the averaging off), got {value}.")
-        if not 0.0 <= self.gamma <= 1.0 or not 0.0 <= self.gae_lambda <= 1.0:
-            raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {self.gamma} and {self.gae_lambda}.")
-        if not any(self.ent_coef_monotone is clamp or self.ent_coef_monotone == clamp for clamp in ENT_COEF_CLAMPS):
-            raise ValueError(
-                f"CGAC: unknown ent_coef_monotone {self.ent_coef_monotone!r}; choose True (the paper's clamp: alpha never "
-                "increases), 'above_target' (no increase while the entropy is at or above its target) or False (free)."
-            )
-        if self.update_precision not in UPDATE_PRECISIONS:
-            raise ValueError(
-                f"CGAC: unknown update_precision {self.update_precision!r}; choose one of {tuple(UPDATE_PRECISIONS)}."
-            )
+        check_choice(
+            "ent_coef_monotone",
+            self.ent_coef_monotone,
+            ENT_COEF_CLAMPS,
+            ": True is the paper's clamp (alpha never increases), 'above_target' holds alpha only while the entropy is "
+            "at or above its target, False leaves it free",
+        )
+        check_choice("update_precision", self.update_precision, tuple(UPDATE_PRECISIONS))
+        check_choice("critic_loss", self.critic_loss, CRITIC_LOSSES)
+        check_choice("entropy_schedule", self.entropy_schedule, (*ENTROPY_SCHEDULES, None), " (None: a fixed beta)")
         if not isinstance(self.compile_updates, (bool, dict)):
             raise ValueError(
                 f"CGAC: compile_updates must be True, False or a dict of torch.compile keyword arguments, got "
                 f"{self.compile_updates!r}."
             )
-        if self.critic_loss not in CRITIC_LOSSES:
-            raise ValueError(f"CGAC: unknown critic_loss {self.critic_loss!r}; choose one of {CRITIC_LOSSES}.")
-        if self.entropy_schedule is not None and self.entropy_schedule not in ENTROPY_SCHEDULES:
-            raise ValueError(
-                f"CGAC: unknown entropy_schedule {self.entropy_schedule!r}; choose one of {tuple(ENTROPY_SCHEDULES)} "
-                "or None for a fixed target_entropy_beta."
-            )
         if self.entropy_schedule is None and self.entropy_schedule_kwargs:
             raise ValueError("CGAC: entropy_schedule_kwargs is given but entropy_schedule is None; set entropy_schedule.")
         if self.max_grad_norm is not None and self.max_grad_norm <= 0:
             raise ValueError(f"CGAC: max_grad_norm must be > 0, got {self.max_grad_norm}.")
-        self._initial_ent_coef()
-
-    def _initial_ent_coef(self) -> tuple[bool, float]:
-        """:return: whether alpha is learned, and its initial value"""
-        if isinstance(self.ent_coef, str):
-            if self.ent_coef == "auto":
-                return True, 1.0
-            if self.ent_coef.startswith("auto_"):
-                try:
-                    init_value = float(self.ent_coef[len("auto_") :])
-                except ValueError:
-                    init_value = -1.0
-                if init_value > 0:
-                    return True, init_value
-            raise ValueError(
-                f"CGAC: malformed ent_coef {self.ent_coef!r}; use a float, 'auto', or 'auto_<init>' with init > 0 "
-                "(e.g. 'auto_0.1', the paper's initial alpha)."
-            )
-        if float(self.ent_coef) < 0:
-            raise ValueError(f"CGAC: ent_coef must be >= 0, got {self.ent_coef}.")
-        return False, float(self.ent_coef)
-
-    @staticmethod
-    def _check_action_space(action_space: spaces.Space | None) -> None:
-        if not isinstance(action_space, spaces.Box):
-            raise ValueError(
-                f"CGAC only supports continuous (Box) action spaces, got {action_space}. For discrete actions use "
-                "an algorithm such as PPO, A2C or DQN; for a discretised control problem, expose the continuous controls."
-            )
-        if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
-            raise ValueError(
-                f"CGAC squashes actions with tanh into the Box bounds, but the action space {action_space} is unbounded. "
-                "Give the env finite bounds, e.g. with gymnasium.wrappers.RescaleAction or ClipAction."
-            )
+        parse_ent_coef(self.ent_coef)
 
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
@@ -330,9 +271,11 @@ class CGAC(OnPolicyAlgorithm):
         )
         self.ent_coef_lr_schedule = None if self.ent_coef_learning_rate is None else FloatSchedule(self.ent_coef_learning_rate)
         self.set_random_seed(self.seed)
-        self._check_action_space(self.action_space)
-        self._setup_batch_size()
-        self._setup_averaging()
+        check_action_space(self.action_space)
+        self._batch_size = resolve_batch_size(self.batch_size, self.buffer_window, self.n_envs)
+        self._tau, self._policy_tau = scaled_polyak_rates(
+            self.tau, self.policy_tau, self.n_envs, self.policy_delay, self.critic_updates_per_step
+        )
         self._setup_update_functions()
 
         buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
@@ -353,7 +296,7 @@ class CGAC(OnPolicyAlgorithm):
         self.policy = self.policy.to(self.device)
         self._create_aliases()
 
-        learn_alpha, init_alpha = self._initial_ent_coef()
+        learn_alpha, init_alpha = parse_ent_coef(self.ent_coef)
         if learn_alpha:
             # Optimise log(alpha), as SB3's SAC does
             self.log_ent_coef = th.log(th.ones(1, device=self.device) * init_alpha).requires_grad_(True)
@@ -362,28 +305,6 @@ class CGAC(OnPolicyAlgorithm):
             self.ent_coef_tensor = th.tensor(init_alpha, device=self.device)
         # Running average of the max/median ratio of dQ/da (actor-gradient outlier clipping); the paper's code starts at 100
         self.gradient_ratio_average = th.tensor(100.0, device=self.device)
-
-    def _setup_batch_size(self) -> None:
-        capacity = self.buffer_window * self.n_envs
-        if self.batch_size is None:
-            self._batch_size = min(PAPER_BATCH_SIZE, capacity)
-        elif self.batch_size > capacity:
-            raise ValueError(
-                f"CGAC: batch_size ({self.batch_size}) is larger than the buffer, which holds buffer_window * n_envs "
-                f"= {self.buffer_window} * {self.n_envs} = {capacity} transitions. Lower batch_size or raise "
-                "buffer_window or the number of envs (batch_size=None picks min(4096, buffer size))."
-            )
-        else:
-            self._batch_size = self.batch_size
-
-    def _setup_averaging(self) -> None:
-        # The paper's averaging rates are per 4096 new transitions: with fewer per actor update the averaged copies
-        # would lag by far more env steps (at 64 envs a third of a 200k-step run); moving them at the same rate per
-        # transition instead made training unstable. The square root of the ratio sits in between (docs/tuning.md).
-        transitions = self.n_envs * self.policy_delay / self.critic_updates_per_step
-        exponent = float(np.sqrt(PAPER_TRANSITIONS_PER_ACTOR_UPDATE / transitions))
-        self._tau = self.tau if self.tau is not None else 1.0 - (1.0 - PAPER_TAU) ** exponent
-        self._policy_tau = self.policy_tau if self.policy_tau is not None else 1.0 - (1.0 - PAPER_POLICY_TAU) ** exponent
 
     def _setup_update_functions(self) -> None:
         self._autocast_dtype = UPDATE_PRECISIONS[self.update_precision]
@@ -408,53 +329,22 @@ class CGAC(OnPolicyAlgorithm):
 
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         if self.entropy_schedule is not None:
-            callback = self._with_entropy_schedule(callback)
+            # The schedule named by the `entropy_schedule` hyperparameter runs first, before the user's callbacks
+            if self._entropy_schedule_callback is None:
+                self._entropy_schedule_callback = ENTROPY_SCHEDULES[self.entropy_schedule](**self.entropy_schedule_kwargs)
+            callback = with_entropy_schedule(callback, self._entropy_schedule_callback, self.entropy_schedule)
         return super()._init_callback(callback, progress_bar)
-
-    def _with_entropy_schedule(self, callback: MaybeCallback) -> list[BaseCallback]:
-        # The schedule given by the `entropy_schedule` hyperparameter runs first, before the user's callbacks
-        given: list[Any] = [] if callback is None else list(callback) if isinstance(callback, list) else [callback]
-        callbacks = [cb if isinstance(cb, BaseCallback) else ConvertCallback(cb) for cb in given]
-        if any(_contains_entropy_schedule(cb) for cb in callbacks):
-            raise ValueError(
-                f"CGAC: the entropy schedule is given twice, by entropy_schedule={self.entropy_schedule!r} and by a "
-                "callback. Keep one: set entropy_schedule=None or remove the schedule callback."
-            )
-        if self._entropy_schedule_callback is None:
-            assert self.entropy_schedule is not None
-            self._entropy_schedule_callback = ENTROPY_SCHEDULES[self.entropy_schedule](**self.entropy_schedule_kwargs)
-        return [self._entropy_schedule_callback, *callbacks]
-
-    def _obs_to_tensor(self, obs: Any) -> tuple[TensorObs, np.ndarray]:
-        """Sanitize a batch of numpy observations and move it to the device (no copy on CPU)."""
-        obs, ok = sanitize_observations(obs)
-        return obs_as_tensor(obs, self.device), ok
 
     def _start_rollout(self, buffer: CGACRolloutBuffer) -> None:
         # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
         # set_env, load): start a new window from `_last_obs`.
-        obs, ok = self._obs_to_tensor(self._last_obs)
+        obs, ok = observations_to_tensor(self._last_obs, self.device)
         buffer.reset()
         buffer.set_current_obs(obs, ok)
         self.policy.update_obs_normalizer(obs, ok)
         with th.inference_mode():
             self._pending_actions = self.actor_avg.sample(obs, 1)[0]
         self._rollout_obs = self._last_obs
-
-    def _terminal_observations(self, infos: list[dict[str, Any]], env_indices: np.ndarray) -> TerminalObservations:
-        terminal = [infos[idx].get("terminal_observation") for idx in env_indices]
-        if any(obs is None for obs in terminal):
-            raise ValueError(
-                "CGAC: the env reported a time-limit truncation (info['TimeLimit.truncated']) without "
-                "info['terminal_observation'], which CGAC needs to bootstrap the value target. Use an SB3 VecEnv "
-                "(DummyVecEnv, SubprocVecEnv) or one of sb3_cgac.vec_env's adapters, which provide it."
-            )
-        if isinstance(terminal[0], dict):
-            stacked: Any = {key: np.stack([obs[key] for obs in terminal]) for key in terminal[0]}
-        else:
-            stacked = np.stack(terminal)
-        obs, ok = self._obs_to_tensor(stacked)
-        return TerminalObservations(th.as_tensor(env_indices, device=self.device), obs, th.as_tensor(ok, device=self.device))
 
     def collect_rollouts(  # type: ignore[override]
         self,
@@ -499,11 +389,11 @@ class CGAC(OnPolicyAlgorithm):
                 terminated = dones & ~truncated
                 trunc_idx = np.flatnonzero(truncated)
                 if len(trunc_idx) > 0:
-                    terminal = self._terminal_observations(infos, trunc_idx)
+                    terminal = terminal_observations(infos, trunc_idx, self.device)
                     if len(trunc_idx) == env.num_envs >= FEW_ENVS:
                         self._warn_synchronised_resets()
 
-            obs_tensor, obs_ok = self._obs_to_tensor(new_obs)
+            obs_tensor, obs_ok = observations_to_tensor(new_obs, self.device)
             self.policy.update_obs_normalizer(obs_tensor, obs_ok)
             with th.inference_mode():
                 # Two draws of the averaged actor at s_{t+1}: the action of the next step, and the
@@ -564,15 +454,9 @@ class CGAC(OnPolicyAlgorithm):
         # Critic gradients are not needed for the actor loss (paper Eq. 7): skip their computation
         self.critic.set_q_requires_grad(False)
         if self.clip_actor_gradient_outliers:
-            actions_pi, log_prob = self.actor.action_log_prob(data.observations)
-            min_q_pi = self.critic.q_values(data.observations, actions_pi).min(dim=0).values
-            q_objective = (min_q_pi * data.weights).sum() / weight_sum
-            dq_da, self.gradient_ratio_average = clip_gradient_outliers(
-                th.autograd.grad(q_objective, actions_pi, retain_graph=True)[0], self.gradient_ratio_average
+            actor_loss, log_prob, self.gradient_ratio_average = outlier_clipped_actor_loss(
+                self.actor, self.critic, data.observations, data.weights, weight_sum, ent_coef, self.gradient_ratio_average
             )
-            # Surrogate whose gradient through the actions is the clipped dQ/da
-            actor_loss = (ent_coef * log_prob * data.weights).sum() / weight_sum - (dq_da.detach() * actions_pi).sum()
-            log_prob = log_prob.detach()
         else:
             actor_loss, log_prob = self._actor_loss_fn(
                 self.actor, self.critic, data.observations, data.weights, weight_sum, ent_coef, self._autocast_dtype
@@ -596,16 +480,10 @@ class CGAC(OnPolicyAlgorithm):
             ent_coef_loss.backward()
             self.ent_coef_optimizer.step()
             if self.ent_coef_monotone:
-                # alpha = min(alpha_prev, alpha_new) (paper Sec. 4.2). The paper applies it at every step, so once the
-                # entropy overshoots below its target alpha can never pull it back and exploration locks; with
-                # "above_target" the clamp only holds while the entropy is at or above the target (then alpha's
-                # gradient asks for no increase, only Adam's momentum could give one), and alpha may rise as far as it
-                # takes to bring a collapsed entropy back to the target, never further.
                 with th.no_grad():
-                    clamped = th.minimum(self.log_ent_coef, previous)
-                    if self.ent_coef_monotone == "above_target":
-                        clamped = th.where(entropy_gap > 0, self.log_ent_coef, clamped)
-                    self.log_ent_coef.copy_(clamped)
+                    self.log_ent_coef.copy_(
+                        clamped_log_ent_coef(self.log_ent_coef, previous, entropy_gap, self.ent_coef_monotone)
+                    )
             ent_coef_loss = ent_coef_loss.detach()
         entropy = -(log_prob * data.weights).sum() / weight_sum
         return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
@@ -618,12 +496,8 @@ class CGAC(OnPolicyAlgorithm):
         th._foreach_lerp_(actor_avg, self._actor_parameters, self._policy_tau)
 
     def _decayed(self, learning_rate: float) -> float:
-        # The authors' linear decay towards final_learning_rate, counted in iterations
-        if self.final_learning_rate is None:
-            return learning_rate
         iterations = self._n_updates // (self.critic_updates_per_step * self.n_steps)
-        fraction = min(1.0, iterations / self.lr_decay_iterations)
-        return learning_rate + fraction * (self.final_learning_rate - learning_rate)
+        return decayed_learning_rate(learning_rate, self.final_learning_rate, iterations, self.lr_decay_iterations)
 
     def _update_learning_rates(self) -> None:
         progress = self._current_progress_remaining
@@ -720,23 +594,12 @@ class CGAC(OnPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "actor",
-            "actor_avg",
-            "critic",
-            "critic_target",
-            "_pending_actions",
-            "_rollout_obs",
-            "_entropy_schedule_callback",
-            "_warned_synchronised_resets",
-            "_autocast_dtype",
-            "_critic_loss_fn",
-            "_actor_loss_fn",
-            "_critic_parameters",
-            "_actor_parameters",
-            "_averaged_parameters",
-        ]
+        # Aliases into the policy (saved with it), and state rebuilt by _setup_model or at the next learn()
+        runtime = ["_pending_actions", "_rollout_obs", "_entropy_schedule_callback", "_warned_synchronised_resets"]
+        update_functions = ["_autocast_dtype", "_critic_loss_fn", "_actor_loss_fn"]
+        parameter_lists = ["_critic_parameters", "_actor_parameters", "_averaged_parameters"]
+        aliases = ["actor", "actor_avg", "critic", "critic_target"]
+        return [*super()._excluded_save_params(), *aliases, *runtime, *update_functions, *parameter_lists]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
@@ -747,11 +610,3 @@ class CGAC(OnPolicyAlgorithm):
         else:
             saved_pytorch_variables.append("ent_coef_tensor")
         return state_dicts, saved_pytorch_variables
-
-
-def _contains_entropy_schedule(callback: BaseCallback) -> bool:
-    if isinstance(callback, EntropyScheduleCallback):
-        return True
-    if isinstance(callback, CallbackList):
-        return any(_contains_entropy_schedule(child) for child in callback.callbacks)
-    return False

@@ -91,6 +91,32 @@ def actor_loss(
     return loss, log_prob.detach()
 
 
+def outlier_clipped_actor_loss(
+    actor: Actor,
+    critic: CGACCritic,
+    observations: PyTorchObs,
+    weights: th.Tensor,
+    weight_sum: th.Tensor,
+    ent_coef: th.Tensor,
+    ratio_average: th.Tensor,
+) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    """
+    ``actor_loss`` with the paper's code's optional outlier clipping of dQ/da (see ``clip_gradient_outliers``): a
+    surrogate loss whose gradient through the actions is the clipped dQ/da, in float32.
+
+    :param ratio_average: Running average of the outlier ratio of dQ/da
+    :return: The loss, the log-probabilities of the sampled actions (detached) and the new running average
+    """
+    actions_pi, log_prob = actor.action_log_prob(observations)
+    min_q_pi = critic.q_values(observations, actions_pi).min(dim=0).values
+    q_objective = (min_q_pi * weights).sum() / weight_sum
+    dq_da, ratio_average = clip_gradient_outliers(
+        th.autograd.grad(q_objective, actions_pi, retain_graph=True)[0], ratio_average
+    )
+    loss = (ent_coef * log_prob * weights).sum() / weight_sum - (dq_da.detach() * actions_pi).sum()
+    return loss, log_prob.detach(), ratio_average
+
+
 def clip_gradient_outliers(dq_da: th.Tensor, ratio_average: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
     """
     Outlier clipping of dQ/da of the paper's code, without a device sync: when the mean over action dims of
@@ -107,3 +133,28 @@ def clip_gradient_outliers(dq_da: th.Tensor, ratio_average: th.Tensor) -> tuple[
     quantiles = th.quantile(dq_da, th.tensor([0.5, 0.95], device=dq_da.device), dim=0)
     clipped = th.clamp(dq_da, min=quantiles[0], max=quantiles[1])
     return th.where(ratio > 2.0 * ratio_average, clipped, dq_da), ratio_average
+
+
+def clamped_log_ent_coef(
+    log_ent_coef: th.Tensor, previous: th.Tensor, entropy_gap: th.Tensor, mode: bool | str = "above_target"
+) -> th.Tensor:
+    """
+    The clamp of the learned entropy coefficient after its update (paper Sec. 4.2: ``alpha = min(alpha_prev, alpha_new)``).
+
+    Applied at every step, the paper's clamp locks exploration: once the entropy overshoots below its target, alpha can
+    never rise to pull it back. ``"above_target"`` holds alpha only while the entropy is at or above the target (then
+    alpha's gradient asks for no increase, only Adam's momentum could give one), so alpha may rise as far as it takes
+    to bring a collapsed entropy back to the target, never further.
+
+    :param log_ent_coef: log(alpha) after the optimizer step
+    :param previous: log(alpha) before it
+    :param entropy_gap: Weighted batch mean of ``log pi + target_entropy`` (> 0: entropy below the target)
+    :param mode: True (the paper's clamp), ``"above_target"`` or False (no clamp)
+    :return: The clamped log(alpha)
+    """
+    if not mode:
+        return log_ent_coef
+    clamped = th.minimum(log_ent_coef, previous)
+    if mode == "above_target":
+        clamped = th.where(entropy_gap > 0, log_ent_coef, clamped)
+    return clamped

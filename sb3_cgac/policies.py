@@ -436,66 +436,15 @@ MlpPolicy = CGACPolicy
 
 class MultiInputPolicy(CGACPolicy):
     """
-    Policy class for CGAC with Dict observations (a ``CombinedExtractor`` by default).
+    Policy class for CGAC with Dict observations: ``CGACPolicy`` with a ``CombinedExtractor`` as default features
+    extractor (``normalize_observations`` is not supported there: use ``VecNormalize``).
 
-    :param observation_space: Observation space
+    :param observation_space: Observation space (a Dict)
     :param action_space: Action space
     :param lr_schedule: Learning rate schedule (the algorithm sets the actual learning rates)
-    :param net_arch: Hidden layers, the same list for actor and critics, or ``dict(pi=[...], qf=[...])``
-    :param activation_fn: Activation function (ELU in the paper)
-    :param log_std_init: Initial log standard deviation of the actor (-1 in the paper's code)
-    :param state_dependent_std: Whether the actor's log standard deviation depends on the state
-    :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
-    :param features_extractor_class: Features extractor to use
-    :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
-    :param normalize_images: Whether to normalize images or not, dividing by 255.0
-    :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
-    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
-    :param n_critics: Number of Q networks
-    :param share_features_extractor: Whether actor and critic share the features extractor
-    :param normalize_observations: Not supported for Dict observations (use ``VecNormalize``)
-    :param critic_layer_norm: Whether to put LayerNorm after every hidden layer of the critics
-    :param stack_critics: Whether to evaluate the critics as one stacked network
+    :param kwargs: The other parameters of ``CGACPolicy``
     """
 
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.ELU,
-        log_std_init: float = -1.0,
-        state_dependent_std: bool = False,
-        use_xavier_init: bool = True,
-        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
-        features_extractor_kwargs: dict[str, Any] | None = None,
-        normalize_images: bool = True,
-        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
-        optimizer_kwargs: dict[str, Any] | None = None,
-        n_critics: int = 2,
-        share_features_extractor: bool = False,
-        normalize_observations: bool = False,
-        critic_layer_norm: bool = False,
-        stack_critics: bool = False,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
-            net_arch,
-            activation_fn,
-            log_std_init,
-            state_dependent_std,
-            use_xavier_init,
-            features_extractor_class,
-            features_extractor_kwargs,
-            normalize_images,
-            optimizer_class,
-            optimizer_kwargs,
-            n_critics,
-            share_features_extractor,
-            normalize_observations,
-            critic_layer_norm,
-            stack_critics,
-        )
+    def __init__(self, observation_space: spaces.Dict, action_space: spaces.Box, lr_schedule: Schedule, **kwargs: Any):
+        kwargs.setdefault("features_extractor_class", CombinedExtractor)
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)

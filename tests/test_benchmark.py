@@ -34,29 +34,6 @@ def test_throughput_table_tiny_budget(tmp_path):
         assert cells[1].startswith(f"SB3 {algo} (zoo settings") and float(cells[5].replace(",", "")) > 0
 
 
-def test_collection_profile_tiny_budget():
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "collection_profile.py"), "--env", "Hopper-v5", "--n-envs", "4",
-         "--calls", "20", "--seconds", "0.2", "--chunk", "0.05"],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr[-3000:]
-    lines = result.stdout.splitlines()
-    assert sum("torch thread" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 8
-    assert sum("5 ms idle" in line for line in lines) == 2
-    assert sum("small torch ops" in line and line.strip().split()[-1].replace(".", "").isdigit() for line in lines) == 2
-    for name in ("raw", "bare loop", "CGAC collection", "CGAC collection, bfloat16 forward"):
-        assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in lines), name
-        env_step = [line for line in lines if line.strip().startswith(f"env step in {name}: ")]
-        assert len(env_step) == 1 and float(env_step[0].split()[-1]) > 0, name
-    part3 = lines[next(i for i, line in enumerate(lines) if line.startswith("3. envpool's own API")) :]
-    for name in ("raw, uniform actions", "raw, the actor's actions", "sync: step, forward", "in step: send all, recv halves",
-                 "async", "raw, uniform actions, pinned threads", "sync: step, forward, pinned threads"):  # fmt: skip
-        assert any(line.strip().startswith(f"{name}: ") and "% of raw)" in line for line in part3), name
-    assert any("step counts spread over" in line for line in part3)
-    assert any(line.strip().startswith("pinned threads (thread_affinity_offset=") for line in part3)
-
-
 def table_rows(stdout: str, first_cell: str) -> list[list[str]]:
     return [
         [cell.strip() for cell in line.strip("|").split("|")]

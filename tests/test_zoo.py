@@ -17,7 +17,6 @@ import gymnasium as gym
 import rl_zoo3
 
 ROOT = pathlib.Path(__file__).parents[1]
-EXAMPLES = ROOT / "examples"
 YAML_FILES = sorted(path.stem for path in HYPERPARAMS_DIR.glob("*.yml"))
 
 
@@ -138,7 +137,7 @@ def test_every_yaml_entry_builds(tmp_path, name, env_id):
 def test_compare_script_tiny_budget(tmp_path):
     out = tmp_path / "cmp"
     result = subprocess.run(
-        [sys.executable, str(EXAMPLES / "compare.py"), "--env", "Pendulum-v1", "--seeds", "1", "--steps", "1000",
+        [sys.executable, "-m", "sb3_cgac.compare", "--env", "Pendulum-v1", "--seeds", "1", "--steps", "1000",
          "--jobs", "2", "--eval-episodes", "2", "--eval-envs", "2", "--out", str(out)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -153,7 +152,7 @@ def test_compare_script_tiny_budget(tmp_path):
     assert [line.split(" | ")[0] for line in table.splitlines()[4:]] == ["| cgac", "| ppo", "| sac"]
     # Finished pairs are skipped when the command runs again
     again = subprocess.run(
-        [sys.executable, str(EXAMPLES / "compare.py"), "--env", "Pendulum-v1", "--seeds", "1", "--steps", "1000",
+        [sys.executable, "-m", "sb3_cgac.compare", "--env", "Pendulum-v1", "--seeds", "1", "--steps", "1000",
          "--out", str(out)],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
@@ -163,7 +162,7 @@ def test_compare_script_tiny_budget(tmp_path):
 def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
-        [sys.executable, str(EXAMPLES / "ablations.py"), "--env", "Pendulum-v1", "--variants", "cgac", "no_pol_avg",
+        [sys.executable, "-m", "sb3_cgac.ablations", "--env", "Pendulum-v1", "--variants", "cgac", "no_pol_avg",
          "n_envs_16", "--seeds", "1", "--steps", "640", "--jobs", "2", "--eval-episodes", "1", "--eval-envs", "1",
          "--out", str(out)],
         capture_output=True, text=True, timeout=600,

@@ -5,6 +5,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
+from sb3_cgac.threads import THREAD_SPIN_CONFIGURED
 from sb3_cgac.vec_env.gymnasium_vec_env import BatchObs, GymnasiumVecEnv
 
 import gymnasium as gym
@@ -22,9 +23,7 @@ def _import_envpool() -> Any:
 
 
 def _warn_if_torch_spins() -> None:
-    import sb3_cgac
-
-    if not sb3_cgac.THREAD_SPIN_CONFIGURED:
+    if not THREAD_SPIN_CONFIGURED:
         warnings.warn(
             "torch was imported before sb3_cgac, so torch's OpenMP threads spin for milliseconds after each op and "
             "slow envpool's threads down (on 2 cores, CGAC's collection dropped from a median 82% to about 60% of "

@@ -1,11 +1,11 @@
 """
 The paper's ablations (Fig. 3) on a cheap env: number of parallel envs, no policy averaging, no value averaging,
 neither, no alpha clamp and the paper's alpha clamp. Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml``
-with one change, run by compare.py's machinery (same budget options, CSV, plots and table; times are compared with
+with one change, run by ``sb3_cgac.compare`` (same budget options, CSV, plots and table; times are compared with
 the full CGAC)::
 
-    python examples/ablations.py --env HalfCheetah-v5 --backend envpool --seeds 2 --minutes 10 --jobs 2
-    python examples/ablations.py --env Hopper-v5 --steps 2000000 --variants cgac no_pol_avg no_val_avg
+    python -m sb3_cgac.ablations --env HalfCheetah-v5 --backend envpool --seeds 2 --minutes 10 --jobs 2
+    python -m sb3_cgac.ablations --env Hopper-v5 --steps 2000000 --variants cgac no_pol_avg no_val_avg
 
 ``--n-envs`` sets the env counts of the parallel-env variants (default: a quarter and four times the entry's).
 """
@@ -15,10 +15,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from sb3_cgac.compare import main as compare_main
 from sb3_cgac.zoo import HYPERPARAMS_DIR
 
 import yaml
-from compare import main as compare_main
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "cgac": {},
@@ -43,9 +43,10 @@ def main() -> None:
     n_envs = known.n_envs or [max(1, entry["n_envs"] // 4), entry["n_envs"] * 4]
     variants = dict(VARIANTS)
     for count in n_envs:
-        # Fewer envs hold fewer transitions: the batch may not exceed the window
-        batch_size = min(entry.get("batch_size") or 4096, count * entry.get("buffer_window", 32))
-        variants[f"n_envs_{count}"] = {"n_envs": count, "batch_size": batch_size}
+        variants[f"n_envs_{count}"] = {"n_envs": count}
+        if entry.get("batch_size", 0) > count * entry.get("buffer_window", 32):
+            # The entry's batch does not fit in the smaller window: CGAC's default (the whole window) instead
+            variants[f"n_envs_{count}"]["batch_size"] = None
     chosen = known.variants or list(variants)
     unknown = [name for name in chosen if name not in variants]
     if unknown:

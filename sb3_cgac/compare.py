@@ -1,0 +1,388 @@
+"""
+CGAC vs SB3 PPO vs SB3 SAC on one env, same machine, same budget (needs the ``zoo`` extra, and ``envpool`` for
+``--backend envpool``)::
+
+    python -m sb3_cgac.compare --env HalfCheetah-v5 --seeds 3 --minutes 15 --jobs 2 --out docs/results/HalfCheetah-v5
+    python -m sb3_cgac.compare --env Pendulum-v1 --seeds 3 --steps 100000 --runs cgac ppo sac
+
+Each run name is a hyperparameter file of this repo: ``cgac``, ``ppo``, ``sac`` read ``hyperparams/<name>.yml``,
+and other files can be added by name (``ppo_parallel`` reads ``hyperparams/ppo_parallel.yml`` and trains PPO: the
+algorithm is the part of the name before ``_``). Models are built exactly as ``python -m sb3_cgac.train`` builds
+them. Every (run, seed) pair trains in its own process with one torch thread and one envpool thread, ``--jobs``
+of them at once, so that two runs share a 2-core machine evenly. Finished pairs are skipped when the command runs
+again: a long comparison can be split over several calls.
+
+The budget is env steps (``--steps``) or training wall-clock minutes (``--minutes``; evaluation time is not counted,
+and the entries' ``n_timesteps`` do not stop a run early). Evaluations are deterministic, on separate envs, every
+``--eval-every`` of the budget (a fraction of the steps, or minutes). Outputs in ``--out``: ``evaluations.csv``
+(run, seed, steps, seconds, mean_return), ``return_vs_steps.png`` and ``return_vs_time.png`` (mean with a 95%
+bootstrap band over seeds; the IQM with rliable from 3 seeds on) and ``summary.md`` (final and best return,
+steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's).
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+COLUMNS = ["run", "seed", "steps", "seconds", "mean_return"]
+
+
+def run_paths(out: Path, run: str, seed: int) -> tuple[Path, Path, Path]:
+    """Evaluations, completion record and log of one (run, seed) pair."""
+    stem = out / "runs" / f"{run}_seed{seed}"
+    return stem.with_suffix(".csv"), stem.with_suffix(".json"), stem.with_suffix(".log")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# One (run, seed) pair, in a worker process
+# --------------------------------------------------------------------------------------------------------------
+
+
+def train_one(args: argparse.Namespace) -> None:
+    """Train one (run, seed) pair under the budget, writing its evaluations as it goes."""
+    from sb3_cgac.zoo import HYPERPARAMS_DIR, build_model
+
+    import torch as th
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.vec_env import sync_envs_normalization
+
+    th.set_num_threads(args.threads)
+    csv_path, done_path, _ = run_paths(Path(args.out), args.run, args.seed)
+    backend_kwargs = {"num_threads": args.threads} if args.backend == "envpool" else None
+    with tempfile.TemporaryDirectory() as log_folder:
+        model, manager = build_model(
+            args.file.split("_")[0],
+            args.env,
+            seed=args.seed,
+            backend=args.backend,
+            backend_kwargs=backend_kwargs,
+            log_folder=log_folder,
+            conf_file=str(Path(args.conf_dir or HYPERPARAMS_DIR) / f"{args.file}.yml"),
+            hyperparams=json.loads(args.overrides) if args.overrides else None,
+            n_timesteps=args.steps or 0,
+            device="cpu",
+        )
+        eval_env = manager.create_envs(args.eval_envs, eval_env=True)
+    rows: list[str] = []
+
+    class EvaluateWithinBudget(BaseCallback):
+        """Evaluates on a schedule and stops at the budget; the budget's clock stops during evaluations."""
+
+        def _on_training_start(self) -> None:
+            self.seconds, self.resumed = 0.0, time.perf_counter()
+            self.evaluate()
+
+        def clock(self) -> float:
+            return self.seconds + time.perf_counter() - self.resumed
+
+        def evaluate(self) -> None:
+            self.seconds = self.clock()
+            if args.minutes:
+                self.next_evaluation = self.seconds + args.eval_every * 60
+            else:
+                self.next_evaluation = self.num_timesteps + args.eval_every * args.steps
+            sync_envs_normalization(self.training_env, eval_env)
+            mean_return, _ = evaluate_policy(self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)
+            rows.append(f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}\n")
+            # Atomic replace: the parent process reads this file to show progress
+            partial = csv_path.with_suffix(".tmp")
+            partial.write_text(",".join(COLUMNS) + "\n" + "".join(rows))
+            partial.replace(csv_path)
+            self.resumed = time.perf_counter()
+
+        def _on_step(self) -> bool:
+            if args.minutes and self.clock() >= args.minutes * 60:
+                return False
+            if (self.clock() if args.minutes else self.num_timesteps) >= self.next_evaluation:
+                self.evaluate()
+            return True
+
+        def _on_training_end(self) -> None:
+            self.evaluate()
+
+    evaluator = EvaluateWithinBudget()
+    # With a time budget, training runs until the clock is out, whatever the entry's n_timesteps; schedules that
+    # follow training progress then stay near their start (the entries compared here use none)
+    model.learn(args.steps or 10**12, callback=[*manager.callbacks, evaluator])
+    done_path.write_text(json.dumps({"steps": model.num_timesteps, "seconds": evaluator.seconds}))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The comparison: launch the pairs, then summarise them
+# --------------------------------------------------------------------------------------------------------------
+
+
+def launch(args: argparse.Namespace, run: str, seed: int, spec: dict[str, Any]) -> subprocess.Popen:
+    command = [sys.executable, "-m", "sb3_cgac.compare", "--worker", "--run", run, "--file", spec["file"], "--seed", str(seed)]
+    command += ["--env", args.env, "--overrides", json.dumps(spec.get("overrides", {}))]
+    command += ["--out", args.out, "--backend", args.backend, "--threads", str(args.threads)]
+    command += ["--eval-every", str(args.eval_every), "--eval-episodes", str(args.eval_episodes)]
+    command += ["--eval-envs", str(args.eval_envs)]
+    command += ["--minutes", str(args.minutes)] if args.minutes else ["--steps", str(args.steps)]
+    if args.conf_dir:
+        command += ["--conf-dir", args.conf_dir]
+    log = run_paths(Path(args.out), run, seed)[2].open("w")
+    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+
+
+def progress_of(out: Path, run: str, seed: int, minutes: bool) -> float:
+    """Budget used so far by a running pair (seconds or steps), from its latest evaluation."""
+    csv_path = run_paths(out, run, seed)[0]
+    if not csv_path.exists():
+        return 0.0
+    last = csv_path.read_text().strip().splitlines()[-1].split(",")
+    try:
+        return float(last[3] if minutes else last[2])
+    except (IndexError, ValueError):  # the header only
+        return 0.0
+
+
+def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], references: tuple[str, ...]) -> None:
+    """Train every (run, seed) pair not finished yet, ``args.jobs`` at a time, then write the outputs."""
+    from tqdm import tqdm
+
+    out = Path(args.out)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    pairs = [(run, seed) for run in runs for seed in range(args.seeds)]
+    pending = [pair for pair in pairs if not run_paths(out, *pair)[1].exists()]
+    print(f"{len(pairs) - len(pending)} of {len(pairs)} (run, seed) pairs already done; training {len(pending)}.")
+    budget = args.minutes * 60 if args.minutes else args.steps
+    running: dict[tuple[str, int], subprocess.Popen] = {}
+    finished = 0
+    quiet = not sys.stderr.isatty()
+    bar_args = dict(unit="s" if args.minutes else "step", unit_scale=True, mininterval=60 if quiet else 0.1)
+    with tqdm(total=len(pending) * budget, **bar_args) as bar:
+        while pending or running:
+            while pending and len(running) < args.jobs:
+                run, seed = pending.pop(0)
+                running[(run, seed)] = launch(args, run, seed, runs[run])
+            time.sleep(2)
+            for (run, seed), process in list(running.items()):
+                if process.poll() is None:
+                    continue
+                del running[(run, seed)]
+                if process.returncode != 0:
+                    log = run_paths(out, run, seed)[2].read_text()[-3000:]
+                    raise RuntimeError(f"{run} seed {seed} failed (exit code {process.returncode}):\n{log}")
+                finished += 1
+            used = finished * budget + sum(min(progress_of(out, *pair, bool(args.minutes)), budget) for pair in running)
+            bar.update(used - bar.n)
+            bar.set_postfix_str(", ".join(f"{run} s{seed}" for run, seed in running), refresh=False)
+    summarise(out, list(runs), args.seeds, args.threshold, references)
+
+
+def load_results(out: Path, runs: list[str], seeds: int) -> tuple[Any, dict[tuple[str, int], dict[str, float]]]:
+    import pandas as pd
+
+    frames, completed = [], {}
+    for run in runs:
+        for seed in range(seeds):
+            csv_path, done_path, _ = run_paths(out, run, seed)
+            if done_path.exists():
+                frames.append(pd.read_csv(csv_path))
+                completed[(run, seed)] = json.loads(done_path.read_text())
+    if not frames:
+        raise RuntimeError(f"No finished run in {out}/runs.")
+    return pd.concat(frames, ignore_index=True), completed
+
+
+def aggregate_curves(curves: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """Point estimate and 95% band over seeds: IQM with rliable from 3 seeds, else the mean with a bootstrap band."""
+    scores = np.stack(curves)  # seeds x points
+    if len(curves) == 1:
+        return scores[0], None, "mean"
+    if len(curves) >= 3:
+        try:
+            from rliable import library as rly
+            from rliable import metrics
+        except Exception:  # not installed, or its dependency arch broken (pandas 3): fall back to the mean
+            rly = None
+        if rly is not None:
+
+            def iqm(values: np.ndarray) -> np.ndarray:
+                return np.array([metrics.aggregate_iqm(values[..., point]) for point in range(values.shape[-1])])
+
+            point, band = rly.get_interval_estimates({"run": scores[:, None, :]}, iqm, reps=500)
+            return point["run"], band["run"], "IQM"
+    rng = np.random.default_rng(0)
+    resampled = scores[rng.integers(0, len(curves), (1000, len(curves)))].mean(axis=1)
+    return scores.mean(axis=0), np.percentile(resampled, [2.5, 97.5], axis=0), "mean"
+
+
+def plot(results: Any, runs: list[str], x_column: str, x_label: str, x_scale: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(7, 4.5))
+    estimator = "mean"
+    for run in runs:
+        per_seed = [frame.sort_values(x_column) for _, frame in results[results["run"] == run].groupby("seed")]
+        if not per_seed:
+            continue
+        end = min(frame[x_column].max() for frame in per_seed)
+        grid = np.linspace(0, end, 60)
+        curves = [np.interp(grid, frame[x_column], frame["mean_return"]) for frame in per_seed]
+        point, band, estimator = aggregate_curves(curves)
+        axis.plot(grid * x_scale, point, label=f"{run} ({len(per_seed)} seeds)")
+        if band is not None:
+            axis.fill_between(grid * x_scale, band[0], band[1], alpha=0.2)
+    axis.set_xlabel(x_label)
+    axis.set_ylabel(f"evaluation return ({estimator}, 95% band)")
+    axis.grid(alpha=0.3)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def first_reach(frame: Any, threshold: float, column: str) -> float:
+    reached = frame[frame["mean_return"] >= threshold]
+    return float(reached[column].min()) if len(reached) else float("inf")
+
+
+def summarise(
+    out: Path, runs: list[str], seeds: int, threshold: float | None, references: tuple[str, ...] = ("ppo", "sac")
+) -> str:
+    """
+    Write evaluations.csv, the two plots and summary.md; return the markdown table.
+
+    :param references: Runs whose time to threshold the others are compared with; the threshold defaults to the
+        best final return of the first of them
+    """
+    results, completed = load_results(out, runs, seeds)
+    results.sort_values(["run", "seed", "steps"]).to_csv(out / "evaluations.csv", index=False)
+    plot(results, runs, "steps", "env steps", 1.0, out / "return_vs_steps.png")
+    plot(results, runs, "seconds", "training wall-clock (minutes)", 1 / 60, out / "return_vs_time.png")
+
+    finals = {run: results[results["run"] == run].sort_values("steps").groupby("seed")["mean_return"].last() for run in runs}
+    threshold_source = "given"
+    if threshold is None:
+        if references[0] not in runs or len(finals[references[0]]) == 0:
+            raise ValueError(f"No {references[0]} run to take the threshold from: pass --threshold.")
+        threshold_source = f"best of {references[0]}'s final returns"
+        threshold = float(finals[references[0]].max())
+    stats: dict[str, dict[str, float]] = {}
+    for run in runs:
+        # The evaluation before training is left out: an untrained policy can score well (a motionless Ant
+        # collects its healthy reward for 1000 steps) and would count as reaching the threshold at 0 s
+        frames = [frame[frame["steps"] > 0] for _, frame in results[results["run"] == run].groupby("seed")]
+        times = [first_reach(frame, threshold, "seconds") for frame in frames]
+        steps = [first_reach(frame, threshold, "steps") for frame in frames]
+        done = [completed[(run, seed)] for seed in range(seeds) if (run, seed) in completed]
+        stats[run] = {
+            "seeds": len(frames),
+            "final": float(finals[run].mean()),
+            "final_std": float(finals[run].std(ddof=0)),
+            "worst": float(finals[run].min()),
+            "best": float(np.mean([frame["mean_return"].max() for frame in frames])),
+            "sps": float(np.mean([d["steps"] / d["seconds"] for d in done])),
+            "reached": int(np.isfinite(times).sum()),
+            # Median over seeds, a seed that never reaches the threshold counting as infinitely slow
+            "time": float(np.median(times)),
+            "steps": float(np.median(steps)),
+        }
+
+    def ratio(run: str, reference: str) -> str:
+        if reference not in stats or run == reference:
+            return "-"
+        mine, theirs = stats[run]["time"], stats[reference]["time"]
+        if not np.isfinite(mine):
+            return "never"
+        if not np.isfinite(theirs):
+            return "< 1 (ref. never)"
+        return f"{mine / theirs:.2f}x" if theirs > 0 else "-"
+
+    shown = [reference for reference in references if reference in stats]
+    lines = [
+        f"Threshold: {threshold:.1f} ({threshold_source}). "
+        "Time and steps to threshold are medians over seeds of the training wall-clock and env steps at the first "
+        "evaluation at or above it (so they are only as fine as the evaluation interval); final and best return: "
+        "mean over seeds of the last and best evaluation (+/- std over seeds); worst final: the lowest last evaluation "
+        "of any seed. The evaluation before training counts "
+        "in neither the best return nor the threshold. Ratios below 1 mean faster than the reference.",
+        "",
+        "| run | seeds | final return | worst final | best return | steps/s | time to threshold | steps to threshold |"
+        + "".join(f" time vs {reference} |" for reference in shown),
+        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * len(shown),
+    ]
+    for run, s in stats.items():
+        time_text = (
+            "not reached"
+            if not np.isfinite(s["time"])
+            else (f"{s['time']:.0f} s" if s["time"] < 120 else f"{s['time'] / 60:.1f} min")
+        )
+        steps_text = f"{s['steps']:,.0f}" if np.isfinite(s["steps"]) else "-"
+        lines.append(
+            f"| {run} | {s['seeds']} | {s['final']:.0f} +/- {s['final_std']:.0f} | {s['worst']:.0f} | {s['best']:.0f} "
+            f"| {s['sps']:,.0f} "
+            f"| {time_text} ({s['reached']}/{s['seeds']} seeds) | {steps_text} |"
+            + "".join(f" {ratio(run, reference)} |" for reference in shown)
+        )
+    table = "\n".join(lines)
+    (out / "summary.md").write_text(table + "\n")
+    print(table)
+    return table
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", required=True, help="env id (the YAML entries of this id are used)")
+    parser.add_argument("--runs", nargs="+", default=["cgac", "ppo", "sac"], help="hyperparameter files by name")
+    parser.add_argument("--seeds", type=int, default=3)
+    budget = parser.add_mutually_exclusive_group(required=True)
+    budget.add_argument("--steps", type=int, help="budget of env steps per run")
+    budget.add_argument("--minutes", type=float, help="budget of training wall-clock minutes per run")
+    parser.add_argument("--eval-every", type=float, default=None, help="fraction of --steps, or minutes (default: 1/20)")
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--eval-envs", type=int, default=5)
+    parser.add_argument("--threshold", type=float, default=None, help="return threshold (default: best PPO final return)")
+    parser.add_argument("--backend", default="dummy", help="vec-env backend of every run (dummy, envpool, ...)")
+    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")
+    parser.add_argument("--threads", type=int, default=1, help="torch (and envpool) threads per run")
+    parser.add_argument("--conf-dir", default=None, help="folder of the YAML files (default: this package's hyperparams)")
+    parser.add_argument("--out", default=None, help="output folder (default: results/<env>)")
+    parser.add_argument("--summary-only", action="store_true", help="only rebuild the CSV, plots and table")
+    # Internal: one (run, seed) pair
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--run", help=argparse.SUPPRESS)
+    parser.add_argument("--file", help=argparse.SUPPRESS)
+    parser.add_argument("--seed", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--overrides", default="", help=argparse.SUPPRESS)
+    return parser
+
+
+def main(
+    runs: dict[str, dict[str, Any]] | None = None, argv: list[str] | None = None, references: tuple[str, ...] = ("ppo", "sac")
+) -> None:
+    """
+    :param runs: Run name -> ``{"file": YAML file name, "overrides": {hyperparameter: value}}`` (``sb3_cgac.ablations``
+        passes its variants this way); default: ``--runs``, each its own file without overrides
+    :param argv: Command-line arguments
+    :param references: Runs the others are compared with (see ``summarise``)
+    """
+    args = build_parser().parse_args(argv)
+    args.out = args.out or f"results/{args.env}"
+    if args.eval_every is None:
+        args.eval_every = args.minutes / 20 if args.minutes else 0.05
+    if args.worker:
+        train_one(args)
+        return
+    runs = runs if runs is not None else {run: {"file": run} for run in args.runs}
+    if args.summary_only:
+        summarise(Path(args.out), list(runs), args.seeds, args.threshold, references)
+    else:
+        run_comparison(args, runs, references)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,142 @@
+"""
+CGAC's hyperparameter rules: the checks of what a user passes, and how the paper's values (given for 4096 parallel
+envs) become the values used at another number of envs. Pure functions, so that scripts use the same rules.
+"""
+
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+# The paper's minibatch size, used when the window holds that many transitions
+PAPER_BATCH_SIZE = 4096
+# The paper's Polyak coefficients tau_Q and tau_pi, one update of each per 4096 new transitions (4096 envs, one
+# actor update per env step)
+PAPER_TAU, PAPER_POLICY_TAU = 0.005, 0.001
+PAPER_TRANSITIONS_PER_ACTOR_UPDATE = 4096
+# Fewer parallel envs than this gives CGAC too little state diversity (paper Sec. 4.2 and Fig. 3a-b)
+FEW_ENVS = 16
+# Clamps of the learned entropy coefficient (see CGAC's ``ent_coef_monotone``)
+ENT_COEF_CLAMPS = (True, False, "above_target")
+# Precision of the networks in the updates: None runs them as they are (float32)
+UPDATE_PRECISIONS: dict[str, th.dtype | None] = {"float32": None, "bfloat16": th.bfloat16}
+
+
+def positive_int(name: str, value: Any) -> None:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"CGAC: {name} must be an integer >= 1, got {value!r}.")
+
+
+def check_schedule(n_steps: int, buffer_window: int, critic_updates_per_step: int, policy_delay: int) -> None:
+    """Check the counts of CGAC's iteration; each error says what is wrong and how to fix it."""
+    for name, value in (
+        ("n_steps", n_steps),
+        ("buffer_window", buffer_window),
+        ("critic_updates_per_step", critic_updates_per_step),
+        ("policy_delay", policy_delay),
+    ):
+        positive_int(name, value)
+    if n_steps > buffer_window:
+        raise ValueError(
+            f"CGAC: n_steps ({n_steps}) is larger than buffer_window ({buffer_window}): each iteration writes n_steps "
+            "new steps per env into a window of buffer_window steps. Lower n_steps or raise buffer_window "
+            "(n_steps == buffer_window gives a fresh buffer every rollout)."
+        )
+
+
+def check_rates(tau: float | None, policy_tau: float | None, gamma: float, gae_lambda: float) -> None:
+    for name, value in (("tau", tau), ("policy_tau", policy_tau)):
+        if value is not None and not 0.0 < value <= 1.0:
+            raise ValueError(f"CGAC: {name} must be in (0, 1] (1 turns the averaging off), got {value}.")
+    if not 0.0 <= gamma <= 1.0 or not 0.0 <= gae_lambda <= 1.0:
+        raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {gamma} and {gae_lambda}.")
+
+
+def check_choice(name: str, value: Any, choices: tuple[Any, ...], hint: str = "") -> None:
+    # `is` as well as ==, so that True does not match 1 and "above_target" is not confused with True
+    if not any(value is choice or (type(value) is type(choice) and value == choice) for choice in choices):
+        raise ValueError(f"CGAC: unknown {name} {value!r}; choose one of {choices}{hint}.")
+
+
+def parse_ent_coef(ent_coef: str | float) -> tuple[bool, float]:
+    """
+    :param ent_coef: A float for a fixed alpha, ``"auto"`` or ``"auto_<init>"`` for a learned one
+    :return: whether alpha is learned, and its initial value
+    """
+    if isinstance(ent_coef, str):
+        if ent_coef == "auto":
+            return True, 1.0
+        if ent_coef.startswith("auto_"):
+            try:
+                init_value = float(ent_coef[len("auto_") :])
+            except ValueError:
+                init_value = -1.0
+            if init_value > 0:
+                return True, init_value
+        raise ValueError(
+            f"CGAC: malformed ent_coef {ent_coef!r}; use a float, 'auto', or 'auto_<init>' with init > 0 "
+            "(e.g. 'auto_0.1', the paper's initial alpha)."
+        )
+    if float(ent_coef) < 0:
+        raise ValueError(f"CGAC: ent_coef must be >= 0, got {ent_coef}.")
+    return False, float(ent_coef)
+
+
+def check_action_space(action_space: spaces.Space | None) -> None:
+    """CGAC's actor is a tanh-squashed Gaussian: it needs a bounded Box."""
+    if not isinstance(action_space, spaces.Box):
+        raise ValueError(
+            f"CGAC only supports continuous (Box) action spaces, got {action_space}. For discrete actions use "
+            "an algorithm such as PPO, A2C or DQN; for a discretised control problem, expose the continuous controls."
+        )
+    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+        raise ValueError(
+            f"CGAC squashes actions with tanh into the Box bounds, but the action space {action_space} is unbounded. "
+            "Give the env finite bounds, e.g. with gymnasium.wrappers.RescaleAction or ClipAction."
+        )
+
+
+def resolve_batch_size(batch_size: int | None, buffer_window: int, n_envs: int) -> int:
+    """
+    :param batch_size: The requested minibatch size (None: the paper's 4096, or the whole window if smaller)
+    :return: The minibatch size; an error if the window cannot hold it
+    """
+    capacity = buffer_window * n_envs
+    if batch_size is None:
+        return min(PAPER_BATCH_SIZE, capacity)
+    if batch_size > capacity:
+        raise ValueError(
+            f"CGAC: batch_size ({batch_size}) is larger than the buffer, which holds buffer_window * n_envs "
+            f"= {buffer_window} * {n_envs} = {capacity} transitions. Lower batch_size or raise buffer_window or "
+            "the number of envs (batch_size=None picks min(4096, buffer size))."
+        )
+    return batch_size
+
+
+def scaled_polyak_rates(
+    tau: float | None, policy_tau: float | None, n_envs: int, policy_delay: int, critic_updates_per_step: int
+) -> tuple[float, float]:
+    """
+    The Polyak coefficients applied at every actor update. Given values are kept; None scales the paper's tau_Q and
+    tau_pi, meant for 4096 new transitions per update, to the ``m = n_envs * policy_delay / critic_updates_per_step``
+    transitions per actor update here: ``1 - (1 - tau_paper) ** sqrt(4096 / m)``.
+
+    At 64 envs the paper's per-update rates make the averaged copies lag a third of a 200k-step run; the same rate per
+    transition made training unstable; the square root sits in between (docs/tuning.md).
+    """
+    transitions = n_envs * policy_delay / critic_updates_per_step
+    exponent = float(np.sqrt(PAPER_TRANSITIONS_PER_ACTOR_UPDATE / transitions))
+    resolved_tau = tau if tau is not None else 1.0 - (1.0 - PAPER_TAU) ** exponent
+    resolved_policy_tau = policy_tau if policy_tau is not None else 1.0 - (1.0 - PAPER_POLICY_TAU) ** exponent
+    return resolved_tau, resolved_policy_tau
+
+
+def decayed_learning_rate(
+    learning_rate: float, final_learning_rate: float | None, iterations: int, decay_iterations: int
+) -> float:
+    """The authors' linear decay from ``learning_rate`` to ``final_learning_rate`` over ``decay_iterations``."""
+    if final_learning_rate is None:
+        return learning_rate
+    fraction = min(1.0, iterations / decay_iterations)
+    return learning_rate + fraction * (final_learning_rate - learning_rate)
