@@ -9,7 +9,7 @@ The settings are the HalfCheetah-v5 entry of ``hyperparams/cgac.yml``. Observati
 
 import argparse
 
-import sb3_cgac  # noqa: F401  (first: it keeps torch's threads from spinning while envpool steps)
+# sb3_cgac before torch: it keeps torch's idle threads from spinning on the cores envpool steps on
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import RewardEntropySchedule
 from sb3_cgac.vec_env import EnvPoolVecEnv

@@ -44,7 +44,7 @@ def main() -> None:
     variants = dict(VARIANTS)
     for count in n_envs:
         variants[f"n_envs_{count}"] = {"n_envs": count}
-        if entry.get("batch_size", 0) > count * entry.get("buffer_window", 32):
+        if (entry.get("batch_size") or 0) > count * entry.get("buffer_window", 32):
             # The entry's batch does not fit in the smaller window: CGAC's default (the whole window) instead
             variants[f"n_envs_{count}"]["batch_size"] = None
     chosen = known.variants or list(variants)
