@@ -17,7 +17,14 @@ from sb3_cgac.hyperparameters import (
     resolve_batch_size,
     scaled_polyak_rates,
 )
-from sb3_cgac.losses import CRITIC_LOSSES, actor_loss, clamped_log_ent_coef, critic_loss, outlier_clipped_actor_loss
+from sb3_cgac.losses import (
+    CRITIC_LOSSES,
+    actor_loss,
+    behaviour_kl,
+    critic_loss,
+    outlier_clipped_actor_loss,
+    update_log_ent_coef,
+)
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 
 import numpy as np
@@ -94,6 +101,9 @@ class CGAC(OnPolicyAlgorithm):
     :param clip_actor_gradient_outliers: Clip outliers of dQ/da in the actor update, as the paper's code can:
         when the mean over action dims of max|g| / median|g| exceeds twice its running average, each dim of
         dQ/da is clamped to its [50th, 95th] percentile range over the batch
+    :param behaviour_kl_coef: Weight of a trust-region penalty ``KL(averaged actor || actor)`` in the actor loss
+        (not in the paper; 0: off): the critics are fitted to the averaged actor's actions only, and this keeps the
+        actor from following their gradient far from them
     :param compile_updates: Compile the losses of the critic and actor updates (forward and backward passes) with
         ``torch.compile``: True, or a dict of ``torch.compile`` keyword arguments (e.g. ``{"mode": "max-autotune"}``).
         The first updates take a while to compile (a C++ compiler is needed on CPU). Not with
@@ -153,6 +163,7 @@ class CGAC(OnPolicyAlgorithm):
         max_grad_norm: float = 20.0,
         actor_max_grad_norm: float | None = None,
         clip_actor_gradient_outliers: bool = False,
+        behaviour_kl_coef: float = 0.0,
         compile_updates: bool | dict[str, Any] = False,
         update_precision: str = "float32",
         rollout_buffer_class: type[CGACRolloutBuffer] | None = None,
@@ -207,6 +218,7 @@ class CGAC(OnPolicyAlgorithm):
         self.critic_loss = critic_loss
         self.actor_max_grad_norm = actor_max_grad_norm
         self.clip_actor_gradient_outliers = clip_actor_gradient_outliers
+        self.behaviour_kl_coef = behaviour_kl_coef
         self.compile_updates = compile_updates
         self.update_precision = update_precision
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
@@ -241,6 +253,8 @@ class CGAC(OnPolicyAlgorithm):
                 positive_int(name, value)
         check_rates(self.tau, self.policy_tau, self.gamma, self.gae_lambda)
         positive_int("lr_decay_iterations", self.lr_decay_iterations)
+        if not self.behaviour_kl_coef >= 0:
+            raise ValueError(f"CGAC: behaviour_kl_coef must be >= 0 (0 turns the penalty off), got {self.behaviour_kl_coef}.")
         if self.final_learning_rate is not None and not self.final_learning_rate >= 0:
             raise ValueError(f"CGAC: final_learning_rate must be >= 0 or None (no decay), got {self.final_learning_rate}.")
         check_choice(
@@ -461,6 +475,9 @@ class CGAC(OnPolicyAlgorithm):
             actor_loss, log_prob = self._actor_loss_fn(
                 self.actor, self.critic, data.observations, data.weights, weight_sum, ent_coef, self._autocast_dtype
             )
+        if self.behaviour_kl_coef > 0:
+            kl = behaviour_kl(self.actor, self.actor_avg, data.observations, data.weights, weight_sum)
+            actor_loss = actor_loss + self.behaviour_kl_coef * kl
         self.actor.optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.critic.set_q_requires_grad(True)
@@ -472,19 +489,15 @@ class CGAC(OnPolicyAlgorithm):
 
         ent_coef_loss = None
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-            # Eq. 12: raise alpha when the entropy is below the target -beta*|A|, lower it above
-            entropy_gap = ((log_prob + target_entropy) * data.weights).sum() / weight_sum
-            ent_coef_loss = -(self.log_ent_coef * entropy_gap).sum()
-            previous = self.log_ent_coef.detach().clone()
-            self.ent_coef_optimizer.zero_grad(set_to_none=True)
-            ent_coef_loss.backward()
-            self.ent_coef_optimizer.step()
-            if self.ent_coef_monotone:
-                with th.no_grad():
-                    self.log_ent_coef.copy_(
-                        clamped_log_ent_coef(self.log_ent_coef, previous, entropy_gap, self.ent_coef_monotone)
-                    )
-            ent_coef_loss = ent_coef_loss.detach()
+            ent_coef_loss = update_log_ent_coef(
+                self.log_ent_coef,
+                self.ent_coef_optimizer,
+                log_prob,
+                data.weights,
+                weight_sum,
+                target_entropy,
+                self.ent_coef_monotone,
+            )
         entropy = -(log_prob * data.weights).sum() / weight_sum
         return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
 

@@ -91,6 +91,29 @@ def actor_loss(
     return loss, log_prob.detach()
 
 
+def behaviour_kl(
+    actor: Actor, behaviour: Actor, observations: PyTorchObs, weights: th.Tensor, weight_sum: th.Tensor
+) -> th.Tensor:
+    """
+    Weighted batch mean of ``KL(behaviour(.|s) || actor(.|s))`` between the Gaussians before the tanh squashing (the
+    squashing does not change a KL divergence). The critics only saw actions of the behaviour policy (the averaged
+    actor), so their gradient dQ/da is an extrapolation far from it: this penalty keeps the trained actor where the
+    critic is informed, as a trust region does.
+
+    :param actor: The trained actor (gradients flow into it)
+    :param behaviour: The averaged actor that collected the window
+    :param observations: Observations of the minibatch
+    :param weights: Sample weights (0 for excluded transitions)
+    :param weight_sum: Sum of the weights (at least 1)
+    :return: The KL divergence, summed over action dims, averaged over the batch
+    """
+    with th.no_grad():
+        mean_b, log_std_b = behaviour.get_action_dist_params(observations)
+    mean, log_std = actor.get_action_dist_params(observations)
+    kl = log_std - log_std_b + (th.exp(2 * log_std_b) + (mean_b - mean) ** 2) / (2 * th.exp(2 * log_std)) - 0.5
+    return (kl.sum(dim=-1) * weights).sum() / weight_sum
+
+
 def outlier_clipped_actor_loss(
     actor: Actor,
     critic: CGACCritic,
@@ -158,3 +181,37 @@ def clamped_log_ent_coef(
     if mode == "above_target":
         clamped = th.where(entropy_gap > 0, log_ent_coef, clamped)
     return clamped
+
+
+def update_log_ent_coef(
+    log_ent_coef: th.Tensor,
+    optimizer: th.optim.Optimizer,
+    log_prob: th.Tensor,
+    weights: th.Tensor,
+    weight_sum: th.Tensor,
+    target_entropy: float,
+    mode: bool | str = "above_target",
+) -> th.Tensor:
+    """
+    One update of the learned entropy coefficient (paper Eq. 12) followed by its clamp (``clamped_log_ent_coef``):
+    alpha rises when the entropy is below the target ``target_entropy``, falls when it is above.
+
+    :param log_ent_coef: log(alpha), updated in place
+    :param optimizer: Its optimizer
+    :param log_prob: Log-probabilities of the actor's actions on the minibatch (their gradients are not used)
+    :param weights: Weights of the minibatch's transitions
+    :param weight_sum: Their sum (at least 1)
+    :param target_entropy: The target entropy ``-beta * |A|``
+    :param mode: The clamp: True (the paper's), ``"above_target"`` or False
+    :return: The loss of the update (detached)
+    """
+    entropy_gap = ((log_prob.detach() + target_entropy) * weights).sum() / weight_sum
+    loss = -(log_ent_coef * entropy_gap).sum()
+    previous = log_ent_coef.detach().clone()
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    if mode:
+        with th.no_grad():
+            log_ent_coef.copy_(clamped_log_ent_coef(log_ent_coef, previous, entropy_gap, mode))
+    return loss.detach()

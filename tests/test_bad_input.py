@@ -59,6 +59,7 @@ def test_unbounded_box():
         (dict(ent_coef="automatic"), "malformed ent_coef 'automatic'"),
         (dict(ent_coef="auto_-1"), "malformed ent_coef"),
         (dict(ent_coef=-0.1), "ent_coef must be >= 0"),
+        (dict(behaviour_kl_coef=-1.0), r"behaviour_kl_coef must be >= 0"),
         (dict(entropy_schedule="cosine"), "unknown entropy_schedule 'cosine'"),
         (dict(entropy_schedule_kwargs=dict(beta_final=3.5)), "entropy_schedule is None"),
         (dict(tau=0.0), r"tau must be in \(0, 1\]"),

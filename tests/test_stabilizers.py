@@ -1,6 +1,7 @@
 """Observation normalisation inside the policy, LayerNorm critics, the learning-rate decay and desynchronised resets."""
 
 from sb3_cgac import CGAC
+from sb3_cgac.losses import behaviour_kl
 from sb3_cgac.policies import CGACPolicy, RunningObsNormalizer
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
@@ -157,3 +158,40 @@ def test_warns_about_synchronised_resets():
         warnings.simplefilter("error", UserWarning)
         env = make_cgac_vec_env("Pendulum-v1", n_envs=16, seed=0, random_first_episode=True)
         CGAC("MlpPolicy", env, **kwargs).learn(16 * 401)
+
+
+def test_behaviour_kl_matches_torch_distributions():
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), **SMALL)
+    obs = th.randn(32, 3)
+    weights, weight_sum = th.ones(32), th.tensor(32.0)
+    # Identical actors: no penalty
+    assert behaviour_kl(model.actor, model.actor_avg, obs, weights, weight_sum).item() == pytest.approx(0.0, abs=1e-6)
+    with th.no_grad():
+        for param in model.actor.parameters():
+            param.add_(0.1 * th.randn_like(param))
+    kl = behaviour_kl(model.actor, model.actor_avg, obs, weights, weight_sum)
+    mean_b, log_std_b = model.actor_avg.get_action_dist_params(obs)
+    mean, log_std = model.actor.get_action_dist_params(obs)
+    expected = th.distributions.kl_divergence(
+        th.distributions.Normal(mean_b, log_std_b.exp()), th.distributions.Normal(mean, log_std.exp())
+    ).sum(dim=-1)
+    assert kl.item() == pytest.approx(expected.mean().item(), rel=1e-4)
+    assert kl.item() > 0
+    # Its gradient reaches the trained actor only
+    kl.backward()
+    assert all(param.grad is None for param in model.actor_avg.parameters())
+    assert model.actor.mu.weight.grad is not None
+
+
+def test_behaviour_kl_coef_keeps_the_actor_near_the_averaged_actor():
+    def gap(coef: float) -> float:
+        env = make_vec_env("Pendulum-v1", n_envs=8)
+        model = CGAC("MlpPolicy", env, behaviour_kl_coef=coef, policy_tau=0.001, batch_size=64, **SMALL)
+        model.learn(800)
+        obs = th.randn(256, 3)
+        with th.no_grad():
+            mean, _ = model.actor.get_action_dist_params(obs)
+            mean_b, _ = model.actor_avg.get_action_dist_params(obs)
+        return (mean - mean_b).abs().mean().item()
+
+    assert gap(100.0) < 0.5 * gap(0.0)
