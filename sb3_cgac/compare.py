@@ -17,7 +17,8 @@ and the entries' ``n_timesteps`` do not stop a run early). Evaluations are deter
 ``--eval-every`` of the budget (a fraction of the steps, or minutes). Outputs in ``--out``: ``evaluations.csv``
 (run, seed, steps, seconds, mean_return), ``return_vs_steps.png`` and ``return_vs_time.png`` (mean with a 95%
 bootstrap band over seeds; the IQM with rliable from 3 seeds on) and ``summary.md`` (final and best return,
-steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's).
+steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's). ``--success-key success``
+adds each evaluation's success rate (the info key at each episode's last step, e.g. Adroit's ``success``).
 """
 
 import argparse
@@ -90,11 +91,21 @@ def train_one(args: argparse.Namespace) -> None:
             else:
                 self.next_evaluation = self.num_timesteps + args.eval_every * args.steps
             sync_envs_normalization(self.training_env, eval_env)
-            mean_return, _ = evaluate_policy(self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)
-            rows.append(f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}\n")
+            successes: list[bool] = []
+
+            def record_success(locals_: dict[str, Any], _globals: dict[str, Any]) -> None:
+                # As SB3's EvalCallback records is_success: the info of each episode's last step
+                if args.success_key and locals_["done"]:
+                    successes.append(bool(locals_["info"].get(args.success_key, False)))
+
+            mean_return, _ = evaluate_policy(
+                self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True, callback=record_success
+            )
+            row = f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}"
+            rows.append(row + (f",{np.mean(successes) if successes else 0.0:.3f}\n" if args.success_key else "\n"))
             # Atomic replace: the parent process reads this file to show progress
             partial = csv_path.with_suffix(".tmp")
-            partial.write_text(",".join(COLUMNS) + "\n" + "".join(rows))
+            partial.write_text(",".join(COLUMNS + (["success_rate"] if args.success_key else [])) + "\n" + "".join(rows))
             partial.replace(csv_path)
             self.resumed = time.perf_counter()
 
@@ -126,6 +137,7 @@ def launch(args: argparse.Namespace, run: str, seed: int, spec: dict[str, Any]) 
     command += ["--out", args.out, "--backend", args.backend, "--threads", str(args.threads)]
     command += ["--eval-every", str(args.eval_every), "--eval-episodes", str(args.eval_episodes)]
     command += ["--eval-envs", str(args.eval_envs)]
+    command += ["--success-key", args.success_key] if args.success_key else []
     command += ["--minutes", str(args.minutes)] if args.minutes else ["--steps", str(args.steps)]
     if args.conf_dir:
         command += ["--conf-dir", args.conf_dir]
@@ -291,6 +303,10 @@ def summarise(
             "time": float(np.median(times)),
             "steps": float(np.median(steps)),
         }
+        if "success_rate" in results:
+            # Runs evaluated without --success-key have no rate
+            last = results[results["run"] == run].sort_values("steps").groupby("seed")["success_rate"].last()
+            stats[run]["success"] = float(last.mean())
 
     def ratio(run: str, reference: str) -> str:
         if reference not in stats or run == reference:
@@ -303,6 +319,7 @@ def summarise(
         return f"{mine / theirs:.2f}x" if theirs > 0 else "-"
 
     shown = [reference for reference in references if reference in stats]
+    with_success = "success_rate" in results
     lines = [
         f"Threshold: {threshold:.1f} ({threshold_source}). "
         "Time and steps to threshold are medians over seeds of the training wall-clock and env steps at the first "
@@ -312,8 +329,9 @@ def summarise(
         "in neither the best return nor the threshold. Ratios below 1 mean faster than the reference.",
         "",
         "| run | seeds | final return | worst final | best return | steps/s | time to threshold | steps to threshold |"
-        + "".join(f" time vs {reference} |" for reference in shown),
-        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * len(shown),
+        + "".join(f" time vs {reference} |" for reference in shown)
+        + (" final success rate |" if with_success else ""),
+        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * (len(shown) + with_success),
     ]
     for run, s in stats.items():
         time_text = (
@@ -327,6 +345,7 @@ def summarise(
             f"| {s['sps']:,.0f} "
             f"| {time_text} ({s['reached']}/{s['seeds']} seeds) | {steps_text} |"
             + "".join(f" {ratio(run, reference)} |" for reference in shown)
+            + (f" {s['success']:.2f} |" if with_success else "")
         )
     table = "\n".join(lines)
     (out / "summary.md").write_text(table + "\n")
@@ -345,6 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--eval-every", type=float, default=None, help="fraction of --steps, or minutes (default: 1/20)")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--eval-envs", type=int, default=5)
+    parser.add_argument("--success-key", default=None, help="info key at each evaluation episode's end: adds a success rate")
     parser.add_argument("--threshold", type=float, default=None, help="return threshold (default: best PPO final return)")
     parser.add_argument("--backend", default="dummy", help="vec-env backend of every run (dummy, envpool, ...)")
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")

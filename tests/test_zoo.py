@@ -159,6 +159,23 @@ def test_compare_script_tiny_budget(tmp_path):
     assert again.returncode == 0 and "3 of 3 (run, seed) pairs already done" in again.stdout
 
 
+def test_compare_success_rate(tmp_path):
+    """--success-key records the share of evaluation episodes whose last step has the info key set (Adroit's success)."""
+    pytest.importorskip("gymnasium_robotics")
+    out = tmp_path / "cmp"
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_cgac.compare", "--env", "AdroitHandPen-v1", "--runs", "sac", "--seeds", "1",
+         "--steps", "200", "--eval-every", "0.5", "--eval-episodes", "2", "--eval-envs", "2", "--threshold", "0",
+         "--success-key", "success", "--out", str(out)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = [row.split(",") for row in (out / "evaluations.csv").read_text().splitlines()]
+    assert rows[0] == ["run", "seed", "steps", "seconds", "mean_return", "success_rate"]
+    assert len(rows) >= 3 and all(0.0 <= float(row[5]) <= 1.0 for row in rows[1:])
+    assert "final success rate" in (out / "summary.md").read_text()
+
+
 def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
