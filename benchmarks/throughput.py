@@ -25,7 +25,7 @@ from collections.abc import Callable
 from typing import Any
 
 from sb3_cgac import CGAC
-from sb3_cgac.vec_env import make_vec_env
+from sb3_cgac.vec_env import make_vec_env, register_optional_envs
 
 import numpy as np
 import torch as th
@@ -43,7 +43,13 @@ everything else. buffer / raw bytes: rollout buffer memory over the bytes of the
 (observation, action, next action, reward, two flags). SubprocVecEnv runs a process per env and is skipped beyond
 64. The machine's speed drifts by +-20% between runs."""
 
-BACKEND_NAMES = {"dummy": "DummyVecEnv", "subproc": "SubprocVecEnv", "envpool": "envpool", "gymnasium": "gymnasium sync"}
+BACKEND_NAMES = {
+    "dummy": "DummyVecEnv",
+    "subproc": "SubprocVecEnv",
+    "envpool": "envpool",
+    "gymnasium": "gymnasium sync",
+    "gymnasium_async": "gymnasium async",
+}
 # SubprocVecEnv runs one process per env: beyond this, the processes alone exhaust 2 cores and 24 GiB
 MAX_PROCESSES = 64
 
@@ -182,7 +188,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", default=["HalfCheetah-v5", "Ant-v5"])
     parser.add_argument("--n-envs", nargs="+", type=int, default=[16, 64, 256, 1024])
-    parser.add_argument("--backends", nargs="+", default=list(BACKEND_NAMES), choices=list(BACKEND_NAMES))
+    parser.add_argument(
+        "--backends", nargs="+", default=["dummy", "subproc", "envpool", "gymnasium"], choices=list(BACKEND_NAMES)
+    )
     parser.add_argument("--seconds", type=float, default=6.0, help="measuring time of raw and of collection, each")
     parser.add_argument("--chunk", type=float, default=0.1, help="raw and collection alternate in chunks of this length")
     parser.add_argument("--e2e-seconds", type=float, default=4.0, help="training time of each end-to-end measurement")
@@ -198,6 +206,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     warnings.filterwarnings("ignore", category=UserWarning)
+    register_optional_envs()  # Adroit, MyoSuite
     if args.zoo_split:
         backend = args.backends[0] if args.backends != parser.get_default("backends") else "dummy"
         print(
@@ -224,6 +233,8 @@ def main() -> None:
         f"--e2e-seconds {args.e2e_seconds:g}"
         + (f" --envs {' '.join(args.envs)}" if args.envs != parser.get_default("envs") else "")
         + (f" --n-envs {' '.join(map(str, args.n_envs))}" if args.n_envs != parser.get_default("n_envs") else "")
+        + (f" --backends {' '.join(args.backends)}" if args.backends != parser.get_default("backends") else "")
+        + (" --no-baselines" if args.no_baselines else "")
         + (f" --output {args.output}" if args.output else ""),
         "",
         "| env | n_envs | backend | raw steps/s | collect steps/s (ratio) | e2e steps/s | env / infer / update / else "
@@ -235,7 +246,7 @@ def main() -> None:
         for n_envs in args.n_envs:
             for backend in args.backends:
                 name = BACKEND_NAMES[backend]
-                if backend == "subproc" and n_envs > MAX_PROCESSES:
+                if backend in ("subproc", "gymnasium_async") and n_envs > MAX_PROCESSES:
                     row = f"| {env_id} | {n_envs} | {name} | skipped: one process per env, > {MAX_PROCESSES} processes |"
                     lines.append(row)
                     print(row, flush=True)

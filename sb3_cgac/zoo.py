@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_cgac import CGAC
-from sb3_cgac.vec_env import BACKENDS, make_vec_env
+from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_optional_envs
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
@@ -42,12 +42,7 @@ SCHEDULE_KEYS = ("learning_rate", "critic_learning_rate", "ent_coef_learning_rat
 def register() -> None:
     """Register CGAC in rl_zoo3, and the envs of gymnasium-robotics and MyoSuite when they are installed."""
     ALGOS["cgac"] = CGAC
-    with contextlib.suppress(ImportError):
-        import gymnasium_robotics
-
-        gym.register_envs(gymnasium_robotics)
-    with contextlib.suppress(ImportError):
-        import myosuite  # noqa: F401  (registers the myo* envs on import)
+    register_optional_envs()
 
 
 def hyperparams_file(algo: str) -> Path | None:

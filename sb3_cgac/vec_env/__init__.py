@@ -4,6 +4,8 @@ SB3's ``DummyVecEnv`` and ``SubprocVecEnv``, ``EnvPoolVecEnv`` (C++ thread pool,
 ``GymnasiumVecEnv`` over ``gymnasium.make_vec`` (sync or async).
 """
 
+import contextlib
+import functools
 from typing import Any
 
 from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv
@@ -16,6 +18,22 @@ from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async")
+
+
+def register_optional_envs() -> None:
+    """Register the envs of gymnasium-robotics (Adroit, ...) and MyoSuite (myo*) when they are installed."""
+    with contextlib.suppress(ImportError):
+        import gymnasium_robotics
+
+        gym.register_envs(gymnasium_robotics)
+    with contextlib.suppress(ImportError):
+        import myosuite  # noqa: F401  (registers the myo* envs on import)
+
+
+def _make_registered(env_id: str, **kwargs: Any) -> gym.Env:
+    """``gym.make`` in a fresh worker process, where only the envs registered on import exist."""
+    register_optional_envs()
+    return gym.make(env_id, **kwargs)
 
 
 def make_vec_env(
@@ -52,7 +70,7 @@ def make_vec_env(
     if backend in ("dummy", "subproc"):
         vec_env_cls = DummyVecEnv if backend == "dummy" else SubprocVecEnv
         return sb3_make_vec_env(
-            env_id,
+            env_id if backend == "dummy" else functools.partial(_make_registered, env_id),
             n_envs=n_envs,
             seed=seed,
             env_kwargs=env_kwargs,
@@ -65,7 +83,7 @@ def make_vec_env(
         return EnvPoolVecEnv(env_id, n_envs, seed=seed if seed is not None else 0, **vec_env_kwargs, **env_kwargs)
     if backend in ("gymnasium", "gymnasium_async"):
         venv = gym.make_vec(
-            env_id,
+            gym.spec(env_id),  # the spec's entry point also works in async workers, where the id may not be registered
             num_envs=n_envs,
             vectorization_mode="sync" if backend == "gymnasium" else "async",
             vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
@@ -78,4 +96,4 @@ def make_vec_env(
     raise ValueError(f"Unknown vec-env backend {backend!r}; choose one of {BACKENDS}.")
 
 
-__all__ = ["BACKENDS", "EnvPoolVecEnv", "GymnasiumVecEnv", "make_vec_env"]
+__all__ = ["BACKENDS", "EnvPoolVecEnv", "GymnasiumVecEnv", "make_vec_env", "register_optional_envs"]

@@ -1,0 +1,134 @@
+"""
+Time to a fixed fraction of the best return against the number of action dimensions, across comparisons made by
+``sb3_cgac.compare`` (the paper's claim: CGAC's lead grows with the action space)::
+
+    python -m sb3_cgac.scaling docs/results/Pendulum-v1 docs/results/Hopper-v5 docs/results/myoLegWalk-v0:80 \\
+        --out docs/results/scaling
+
+Each argument is a comparison folder named after its env id, with ``:<n>`` for the number of action dimensions
+when the env is not installed here (MyoSuite has its own environment). For each run (``--runs``) and seed, the
+time to a fraction ``f`` of the seed's own best is the training wall-clock of its first evaluation at or above
+``first + f * (best - first)``, ``first`` being the evaluation before training (so negative returns work); the
+median over seeds is plotted against the action dimensions, and tabulated. A seed that never improves counts as
+not reaching it.
+"""
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def action_dims(env_id: str) -> int:
+    """Number of action dimensions of an installed env (gymnasium-robotics and MyoSuite registered if present)."""
+    from sb3_cgac.vec_env import register_optional_envs
+
+    import gymnasium as gym
+
+    register_optional_envs()
+    if env_id not in gym.registry:
+        raise ValueError(f"{env_id} is not installed here: pass its action dimensions as <folder>:<n>.")
+    env = gym.make(env_id)
+    shape = env.action_space.shape
+    env.close()
+    if not shape:
+        raise ValueError(f"{env_id} has no Box action space.")
+    return int(np.prod(shape))
+
+
+def time_to_fraction(frame: Any, fraction: float) -> float:
+    """Seconds to the first evaluation at ``fraction`` of this seed's improvement over its first evaluation."""
+    frame = frame.sort_values("steps")
+    first, best = float(frame["mean_return"].iloc[0]), float(frame["mean_return"].max())
+    if best <= first:
+        return float("inf")
+    reached = frame[(frame["steps"] > 0) & (frame["mean_return"] >= first + fraction * (best - first))]
+    return float(reached["seconds"].min()) if len(reached) else float("inf")
+
+
+def scaling_table(folders: list[str], runs: list[str], fraction: float) -> list[dict[str, Any]]:
+    """One row per (env, run): env id, action dimensions, seeds, median seconds to the fraction."""
+    import pandas as pd
+
+    rows = []
+    for argument in folders:
+        folder, _, dims_text = argument.partition(":")
+        env_id = Path(folder).name
+        dims = int(dims_text) if dims_text else action_dims(env_id)
+        results = pd.read_csv(Path(folder) / "evaluations.csv")
+        for run in runs:
+            seeds = [frame for _, frame in results[results["run"] == run].groupby("seed")]
+            if not seeds:
+                continue
+            times = [time_to_fraction(frame, fraction) for frame in seeds]
+            rows.append(dict(env=env_id, dims=dims, run=run, seeds=len(seeds), seconds=float(np.median(times))))
+    return sorted(rows, key=lambda row: (row["dims"], row["env"], row["run"]))
+
+
+def plot_scaling(rows: list[dict[str, Any]], runs: list[str], fraction: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(7, 4.5))
+    for run in runs:
+        points = [(row["dims"], row["seconds"] / 60) for row in rows if row["run"] == run and np.isfinite(row["seconds"])]
+        if points:
+            dims, minutes = zip(*points, strict=True)
+            axis.plot(dims, minutes, "o-", label=run)
+    for row in rows:
+        axis.annotate(row["env"], (row["dims"], 0), textcoords="offset points", xytext=(0, 4), rotation=90, fontsize=7)
+    axis.set_xscale("log")
+    axis.set_xlabel("action dimensions")
+    axis.set_ylabel(f"minutes to {fraction:.0%} of the best return (median over seeds)")
+    axis.grid(alpha=0.3)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folders", nargs="+", help="comparison folders named after their env id, optionally <folder>:<dims>")
+    parser.add_argument("--runs", nargs="+", default=["cgac", "ppo"], help="runs to compare")
+    parser.add_argument("--fraction", type=float, default=0.8, help="fraction of each seed's best improvement")
+    parser.add_argument("--out", default="results/scaling", help="output stem: <out>.png and <out>.md")
+    args = parser.parse_args(argv)
+    if not 0 < args.fraction <= 1:
+        raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}.")
+    rows = scaling_table(args.folders, args.runs, args.fraction)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    plot_scaling(rows, args.runs, args.fraction, out.with_suffix(".png"))
+
+    def minutes(seconds: float) -> str:
+        return f"{seconds / 60:.1f}" if np.isfinite(seconds) else "not reached"
+
+    lines = [
+        f"Minutes of training to {args.fraction:.0%} of each seed's best improvement over its first evaluation "
+        "(median over seeds).",
+        "",
+        "| env | action dims | " + " | ".join(args.runs) + " |",
+        "| --- | --- | " + " | ".join("---" for _ in args.runs) + " |",
+    ]
+    for env_id in dict.fromkeys(row["env"] for row in rows):
+        of_env = {row["run"]: row for row in rows if row["env"] == env_id}
+        cells = [
+            f"{minutes(of_env[run]['seconds'])} ({of_env[run]['seeds']} seed{'s' * (of_env[run]['seeds'] != 1)})"
+            if run in of_env
+            else "-"
+            for run in args.runs
+        ]
+        dims = next(iter(of_env.values()))["dims"]
+        lines.append(f"| {env_id} | {dims} | " + " | ".join(cells) + " |")
+    table = "\n".join(lines)
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    return table
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""sb3_cgac.scaling: time to a fraction of the best return against the action dimensions."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pandas")
+pytest.importorskip("matplotlib")
+
+from sb3_cgac.scaling import main, time_to_fraction
+
+import pandas as pd
+
+
+def evaluations(run: str, seed: int, returns: list[float]) -> list[dict]:
+    return [
+        dict(run=run, seed=seed, steps=1000 * i, seconds=60.0 * i, mean_return=value) for i, value in enumerate(returns)
+    ]  # fmt: skip
+
+
+def test_time_to_fraction():
+    frame = pd.DataFrame(evaluations("cgac", 0, [-1000, -600, -200, -300]))
+    # 80% of the improvement from -1000 to -200 is -360: first reached at the third evaluation
+    assert time_to_fraction(frame, 0.8) == 120.0
+    assert time_to_fraction(frame, 0.5) == 60.0
+    # The evaluation before training does not count, and a seed that never improves never reaches it
+    assert time_to_fraction(pd.DataFrame(evaluations("cgac", 0, [5, 3, 1])), 0.8) == float("inf")
+
+
+def test_scaling_table_and_plot(tmp_path):
+    for env_id, (cgac, ppo) in {"Pendulum-v1": ([0, 5, 10], [0, 2, 10]), "myoLegWalk-v0": ([0, 10, 9], [0, 0, 1])}.items():
+        folder = tmp_path / env_id
+        folder.mkdir()
+        rows = evaluations("cgac", 0, cgac) + evaluations("cgac", 1, cgac) + evaluations("ppo", 0, ppo)
+        pd.DataFrame(rows).to_csv(folder / "evaluations.csv", index=False)
+    table = main([str(tmp_path / "Pendulum-v1"), f"{tmp_path / 'myoLegWalk-v0'}:80", "--out", str(tmp_path / "scaling")])
+    assert (tmp_path / "scaling.png").exists() and (tmp_path / "scaling.md").read_text().strip() == table
+    lines = table.splitlines()
+    assert lines[4] == "| Pendulum-v1 | 1 | 2.0 (2 seeds) | 2.0 (1 seed) |"
+    assert lines[5] == "| myoLegWalk-v0 | 80 | 1.0 (2 seeds) | 2.0 (1 seed) |"
+    # An env that is not installed needs its dimensions in the argument
+    (tmp_path / "NotInstalled-v0").mkdir()
+    (tmp_path / "NotInstalled-v0" / "evaluations.csv").write_text((tmp_path / "Pendulum-v1" / "evaluations.csv").read_text())
+    with pytest.raises(ValueError, match="pass its action dimensions"):
+        main([str(tmp_path / "NotInstalled-v0"), "--out", str(tmp_path / "other")])
+
+
+def test_fraction_is_checked(tmp_path):
+    with pytest.raises(ValueError, match="--fraction"):
+        main([str(tmp_path), "--fraction", "1.5"])
+    assert np.isfinite(time_to_fraction(pd.DataFrame(evaluations("ppo", 0, [0, 1])), 1.0))
