@@ -55,6 +55,28 @@ def observations_to_tensor(obs: Any, device: th.device) -> tuple[TensorObs, np.n
     return obs_as_tensor(obs, device), ok
 
 
+def split_episode_ends(
+    dones: np.ndarray, infos: list[dict[str, Any]], device: th.device
+) -> tuple[np.ndarray, np.ndarray, TerminalObservations | None]:
+    """
+    Split SB3's ``dones`` into terminations and time-limit truncations (``info["TimeLimit.truncated"]``): a truncated
+    episode is not a terminal state, its value target bootstraps from the real last observation (paper Sec. 4.1).
+
+    :param dones: The dones of one step of the VecEnv
+    :param infos: Its infos
+    :param device: Device of the buffer
+    :return: The terminated and truncated flags, and the terminal observations of the truncated envs (None if none)
+    """
+    done_idx = np.flatnonzero(dones)
+    if len(done_idx) == 0:  # most steps: nothing to sort out
+        return dones, dones, None
+    truncated = np.zeros(len(dones), dtype=bool)
+    truncated[done_idx] = [infos[idx].get("TimeLimit.truncated", False) for idx in done_idx]
+    trunc_idx = np.flatnonzero(truncated)
+    terminal = terminal_observations(infos, trunc_idx, device) if len(trunc_idx) > 0 else None
+    return dones & ~truncated, truncated, terminal
+
+
 def terminal_observations(infos: list[dict[str, Any]], env_indices: np.ndarray, device: th.device) -> TerminalObservations:
     """
     The real last observations of the envs cut by a time limit, from SB3's ``info["terminal_observation"]``.

@@ -1,24 +1,19 @@
 import warnings
 from typing import Any, ClassVar, TypeVar
 
-from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, observations_to_tensor, terminal_observations
+from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, observations_to_tensor, split_episode_ends
 from sb3_cgac.callbacks import ENTROPY_SCHEDULES, EntropyScheduleCallback, with_entropy_schedule
 from sb3_cgac.hyperparameters import (
-    ENT_COEF_CLAMPS,
     FEW_ENVS,
     UPDATE_PRECISIONS,
     check_action_space,
-    check_choice,
-    check_rates,
-    check_schedule,
+    check_hyperparameters,
     decayed_learning_rate,
     parse_ent_coef,
-    positive_int,
     resolve_batch_size,
     scaled_polyak_rates,
 )
 from sb3_cgac.losses import (
-    CRITIC_LOSSES,
     actor_loss,
     behaviour_kl,
     critic_loss,
@@ -176,9 +171,6 @@ class CGAC(OnPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        if env is not None and not isinstance(env, str):
-            # Before SB3's own checks, which give less helpful messages
-            check_action_space(env.action_space)
         super().__init__(
             policy,  # type: ignore[arg-type]
             env,
@@ -232,8 +224,6 @@ class CGAC(OnPolicyAlgorithm):
         self._warned_synchronised_resets = False
 
         self._check_hyperparameters()
-        if self.env is not None:
-            check_action_space(self.action_space)
         if _init_setup_model:
             self._setup_model()
             if self.n_envs < FEW_ENVS:
@@ -245,38 +235,19 @@ class CGAC(OnPolicyAlgorithm):
                     stacklevel=2,
                 )
 
+    @staticmethod
+    def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
+        # The one check of the action space, for every env given (constructor, set_env, load): before SB3's own
+        # checks, which give less helpful messages
+        check_action_space(env.action_space)
+        return OnPolicyAlgorithm._wrap_env(env, verbose, monitor_wrapper)
+
     def _check_hyperparameters(self) -> None:
-        # Checks that do not depend on the env; each error says what is wrong and how to fix it
-        check_schedule(self.n_steps, self.buffer_window, self.critic_updates_per_step, self.policy_delay)
-        for name, value in (("batch_size", self.batch_size), ("gae_horizon", self.gae_horizon)):
-            if value is not None:
-                positive_int(name, value)
-        check_rates(self.tau, self.policy_tau, self.gamma, self.gae_lambda)
-        positive_int("lr_decay_iterations", self.lr_decay_iterations)
-        if not self.behaviour_kl_coef >= 0:
-            raise ValueError(f"CGAC: behaviour_kl_coef must be >= 0 (0 turns the penalty off), got {self.behaviour_kl_coef}.")
-        if self.final_learning_rate is not None and not self.final_learning_rate >= 0:
-            raise ValueError(f"CGAC: final_learning_rate must be >= 0 or None (no decay), got {self.final_learning_rate}.")
-        check_choice(
-            "ent_coef_monotone",
-            self.ent_coef_monotone,
-            ENT_COEF_CLAMPS,
-            ": True is the paper's clamp (alpha never increases), 'above_target' holds alpha only while the entropy is "
-            "at or above its target, False leaves it free",
-        )
-        check_choice("update_precision", self.update_precision, tuple(UPDATE_PRECISIONS))
-        check_choice("critic_loss", self.critic_loss, CRITIC_LOSSES)
-        check_choice("entropy_schedule", self.entropy_schedule, (*ENTROPY_SCHEDULES, None), " (None: a fixed beta)")
-        if not isinstance(self.compile_updates, (bool, dict)):
-            raise ValueError(
-                f"CGAC: compile_updates must be True, False or a dict of torch.compile keyword arguments, got "
-                f"{self.compile_updates!r}."
-            )
-        if self.entropy_schedule is None and self.entropy_schedule_kwargs:
-            raise ValueError("CGAC: entropy_schedule_kwargs is given but entropy_schedule is None; set entropy_schedule.")
-        if self.max_grad_norm is not None and self.max_grad_norm <= 0:
-            raise ValueError(f"CGAC: max_grad_norm must be > 0, got {self.max_grad_norm}.")
-        parse_ent_coef(self.ent_coef)
+        names = ["n_steps", "buffer_window", "critic_updates_per_step", "policy_delay", "batch_size", "gae_horizon", "tau"]
+        names += ["policy_tau", "gamma", "gae_lambda", "lr_decay_iterations", "final_learning_rate", "max_grad_norm"]
+        names += ["behaviour_kl_coef", "ent_coef", "ent_coef_monotone", "entropy_schedule", "entropy_schedule_kwargs"]
+        names += ["critic_loss", "update_precision", "compile_updates"]
+        check_hyperparameters(**{name: getattr(self, name) for name in names}, entropy_schedules=tuple(ENTROPY_SCHEDULES))
 
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
@@ -285,7 +256,6 @@ class CGAC(OnPolicyAlgorithm):
         )
         self.ent_coef_lr_schedule = None if self.ent_coef_learning_rate is None else FloatSchedule(self.ent_coef_learning_rate)
         self.set_random_seed(self.seed)
-        check_action_space(self.action_space)
         self._batch_size = resolve_batch_size(self.batch_size, self.buffer_window, self.n_envs)
         self._tau, self._policy_tau = scaled_polyak_rates(
             self.tau, self.policy_tau, self.n_envs, self.policy_delay, self.critic_updates_per_step
@@ -393,19 +363,9 @@ class CGAC(OnPolicyAlgorithm):
             new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
             self.num_timesteps += env.num_envs
 
-            done_idx = np.flatnonzero(dones)
-            terminal = None
-            if len(done_idx) == 0:  # most steps: nothing to sort out
-                terminated = truncated = dones
-            else:
-                truncated = np.zeros(len(dones), dtype=bool)
-                truncated[done_idx] = [infos[idx].get("TimeLimit.truncated", False) for idx in done_idx]
-                terminated = dones & ~truncated
-                trunc_idx = np.flatnonzero(truncated)
-                if len(trunc_idx) > 0:
-                    terminal = terminal_observations(infos, trunc_idx, self.device)
-                    if len(trunc_idx) == env.num_envs >= FEW_ENVS:
-                        self._warn_synchronised_resets()
+            terminated, truncated, terminal = split_episode_ends(dones, infos, self.device)
+            if terminal is not None and len(terminal.env_indices) == env.num_envs >= FEW_ENVS:
+                self._warn_synchronised_resets()
 
             obs_tensor, obs_ok = observations_to_tensor(new_obs, self.device)
             self.policy.update_obs_normalizer(obs_tensor, obs_ok)
@@ -420,7 +380,8 @@ class CGAC(OnPolicyAlgorithm):
             self._last_obs = self._rollout_obs = new_obs  # type: ignore[assignment]
             self._last_episode_starts = dones
             self._pending_actions = next_step_actions
-            if len(done_idx) > 0:  # episode statistics only come with finished episodes
+            if dones.any():  # episode statistics only come with finished episodes
+                done_idx = np.flatnonzero(dones)
                 self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
 
             callback.update_locals(locals())
@@ -546,25 +507,21 @@ class CGAC(OnPolicyAlgorithm):
 
         self.policy.set_training_mode(False)
         self._check_finite_parameters()
-        critic_loss, q_mean, critic_grad_norm = th.stack(critic_stats).mean(dim=0).tolist()
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/tau", self._tau)
-        self.logger.record("train/policy_tau", self._policy_tau)
-        self.logger.record("train/critic_loss", critic_loss)
-        self.logger.record("train/q_mean", q_mean)
-        self.logger.record("train/critic_grad_norm", critic_grad_norm)
-        self.logger.record("train/target_entropy", target_entropy)
-        self.logger.record("train/beta", self.target_entropy_beta)
-        self.logger.record("train/ent_coef", self._current_ent_coef())
-        if isinstance(self.actor.log_std, th.nn.Parameter):
-            self.logger.record("train/std", th.exp(self.actor.log_std.detach()).mean().item())
+        # One read of the statistics per iteration (no host-device sync inside the update loop)
+        critic_names = ("critic_loss", "q_mean", "critic_grad_norm")
+        stats = dict(zip(critic_names, th.stack(critic_stats).mean(dim=0).tolist(), strict=True))
         if actor_stats:
-            actor_loss, actor_grad_norm, entropy, ent_coef_loss = th.stack(actor_stats).mean(dim=0).tolist()
-            self.logger.record("train/actor_loss", actor_loss)
-            self.logger.record("train/actor_grad_norm", actor_grad_norm)
-            self.logger.record("train/entropy", entropy)
-            if self.ent_coef_optimizer is not None:
-                self.logger.record("train/ent_coef_loss", ent_coef_loss)
+            names = ("actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss")
+            stats.update(zip(names, th.stack(actor_stats).mean(dim=0).tolist(), strict=True))
+            if self.ent_coef_optimizer is None:
+                del stats["ent_coef_loss"]
+        stats.update(tau=self._tau, policy_tau=self._policy_tau, target_entropy=target_entropy)
+        stats.update(beta=self.target_entropy_beta, ent_coef=self._current_ent_coef())
+        if isinstance(self.actor.log_std, th.nn.Parameter):
+            stats["std"] = th.exp(self.actor.log_std.detach()).mean().item()
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for key, value in stats.items():
+            self.logger.record(f"train/{key}", value)
 
     def _current_ent_coef(self) -> float:
         if self.log_ent_coef is not None:

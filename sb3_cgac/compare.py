@@ -229,13 +229,31 @@ def aggregate_curves(curves: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray |
     return scores.mean(axis=0), np.percentile(resampled, [2.5, 97.5], axis=0), "mean"
 
 
-def plot(results: Any, runs: list[str], x_column: str, x_label: str, x_scale: float, path: Path) -> None:
+def new_axis() -> tuple[Any, Any]:
+    """A figure and its axis, drawn without a display (matplotlib's Agg backend)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axis = plt.subplots(figsize=(7, 4.5))
+    return plt.subplots(figsize=(7, 4.5))
+
+
+def save_figure(figure: Any, axis: Any, x_label: str, y_label: str, path: Path) -> None:
+    """Label the axis, add a grid and the legend, write the figure to ``path`` and close it."""
+    import matplotlib.pyplot as plt
+
+    axis.set_xlabel(x_label)
+    axis.set_ylabel(y_label)
+    axis.grid(alpha=0.3)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def plot(results: Any, runs: list[str], x_column: str, x_label: str, x_scale: float, path: Path) -> None:
+    figure, axis = new_axis()
     estimator = "mean"
     for run in runs:
         per_seed = [frame.sort_values(x_column) for _, frame in results[results["run"] == run].groupby("seed")]
@@ -248,13 +266,7 @@ def plot(results: Any, runs: list[str], x_column: str, x_label: str, x_scale: fl
         axis.plot(grid * x_scale, point, label=f"{run} ({len(per_seed)} seeds)")
         if band is not None:
             axis.fill_between(grid * x_scale, band[0], band[1], alpha=0.2)
-    axis.set_xlabel(x_label)
-    axis.set_ylabel(f"evaluation return ({estimator}, 95% band)")
-    axis.grid(alpha=0.3)
-    axis.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    save_figure(figure, axis, x_label, f"evaluation return ({estimator}, 95% band)", path)
 
 
 def first_reach(frame: Any, threshold: float, column: str) -> float:

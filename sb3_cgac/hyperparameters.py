@@ -21,6 +21,8 @@ FEW_ENVS = 16
 ENT_COEF_CLAMPS = (True, False, "above_target")
 # Precision of the networks in the updates: None runs them as they are (float32)
 UPDATE_PRECISIONS: dict[str, th.dtype | None] = {"float32": None, "bfloat16": th.bfloat16}
+# Regression losses of the critics (see ``sb3_cgac.losses.q_regression_loss``)
+CRITIC_LOSSES = ("huber", "mse")
 
 
 def positive_int(name: str, value: Any) -> None:
@@ -51,6 +53,68 @@ def check_rates(tau: float | None, policy_tau: float | None, gamma: float, gae_l
             raise ValueError(f"CGAC: {name} must be in (0, 1] (1 turns the averaging off), got {value}.")
     if not 0.0 <= gamma <= 1.0 or not 0.0 <= gae_lambda <= 1.0:
         raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {gamma} and {gae_lambda}.")
+
+
+def check_hyperparameters(
+    *,
+    n_steps: int,
+    buffer_window: int,
+    critic_updates_per_step: int,
+    policy_delay: int,
+    batch_size: int | None,
+    gae_horizon: int | None,
+    tau: float | None,
+    policy_tau: float | None,
+    gamma: float,
+    gae_lambda: float,
+    lr_decay_iterations: int,
+    final_learning_rate: float | None,
+    max_grad_norm: float | None,
+    behaviour_kl_coef: float,
+    ent_coef: str | float,
+    ent_coef_monotone: bool | str,
+    entropy_schedule: str | None,
+    entropy_schedule_kwargs: dict[str, Any],
+    entropy_schedules: tuple[str, ...],
+    critic_loss: str,
+    update_precision: str,
+    compile_updates: Any,
+) -> None:
+    """
+    Check CGAC's constructor arguments that do not depend on the env (see ``CGAC`` for their meaning); each error
+    says what is wrong and how to fix it.
+
+    :param entropy_schedules: The names of the entropy schedules that ``entropy_schedule`` may take
+    """
+    check_schedule(n_steps, buffer_window, critic_updates_per_step, policy_delay)
+    for name, value in (("batch_size", batch_size), ("gae_horizon", gae_horizon)):
+        if value is not None:
+            positive_int(name, value)
+    check_rates(tau, policy_tau, gamma, gae_lambda)
+    positive_int("lr_decay_iterations", lr_decay_iterations)
+    if final_learning_rate is not None and not final_learning_rate >= 0:
+        raise ValueError(f"CGAC: final_learning_rate must be >= 0 or None (no decay), got {final_learning_rate}.")
+    if max_grad_norm is not None and max_grad_norm <= 0:
+        raise ValueError(f"CGAC: max_grad_norm must be > 0, got {max_grad_norm}.")
+    if not behaviour_kl_coef >= 0:
+        raise ValueError(f"CGAC: behaviour_kl_coef must be >= 0 (0 turns the penalty off), got {behaviour_kl_coef}.")
+    parse_ent_coef(ent_coef)
+    check_choice(
+        "ent_coef_monotone",
+        ent_coef_monotone,
+        ENT_COEF_CLAMPS,
+        ": True is the paper's clamp (alpha never increases), 'above_target' holds alpha only while the entropy is "
+        "at or above its target, False leaves it free",
+    )
+    check_choice("entropy_schedule", entropy_schedule, (*entropy_schedules, None), " (None: a fixed beta)")
+    if entropy_schedule is None and entropy_schedule_kwargs:
+        raise ValueError("CGAC: entropy_schedule_kwargs is given but entropy_schedule is None; set entropy_schedule.")
+    check_choice("critic_loss", critic_loss, CRITIC_LOSSES)
+    check_choice("update_precision", update_precision, tuple(UPDATE_PRECISIONS))
+    if not isinstance(compile_updates, (bool, dict)):
+        raise ValueError(
+            f"CGAC: compile_updates must be True, False or a dict of torch.compile keyword arguments, got {compile_updates!r}."
+        )
 
 
 def check_choice(name: str, value: Any, choices: tuple[Any, ...], hint: str = "") -> None:

@@ -8,8 +8,6 @@ from sb3_cgac.policies import Actor, CGACCritic
 import torch as th
 from stable_baselines3.common.type_aliases import PyTorchObs
 
-CRITIC_LOSSES = ("huber", "mse")
-
 
 def q_regression_loss(q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor, loss: str = "huber") -> th.Tensor:
     """

@@ -17,6 +17,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from sb3_cgac.compare import new_axis, save_figure
+
 import numpy as np
 
 
@@ -67,12 +69,7 @@ def scaling_table(folders: list[str], runs: list[str], fraction: float) -> list[
 
 
 def plot_scaling(rows: list[dict[str, Any]], runs: list[str], fraction: float, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axis = plt.subplots(figsize=(7, 4.5))
+    figure, axis = new_axis()
     for run in runs:
         points = [(row["dims"], row["seconds"] / 60) for row in rows if row["run"] == run and np.isfinite(row["seconds"])]
         if points:
@@ -81,13 +78,8 @@ def plot_scaling(rows: list[dict[str, Any]], runs: list[str], fraction: float, p
     for row in rows:
         axis.annotate(row["env"], (row["dims"], 0), textcoords="offset points", xytext=(0, 4), rotation=90, fontsize=7)
     axis.set_xscale("log")
-    axis.set_xlabel("action dimensions")
-    axis.set_ylabel(f"minutes to {fraction:.0%} of the best return (median over seeds)")
-    axis.grid(alpha=0.3)
-    axis.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    y_label = f"minutes to {fraction:.0%} of the best return (median over seeds)"
+    save_figure(figure, axis, "action dimensions", y_label, path)
 
 
 def main(argv: list[str] | None = None) -> str:

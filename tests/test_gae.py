@@ -1,5 +1,5 @@
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import CGACRolloutBuffer, TerminalObservations
+from sb3_cgac.buffers import CGACRolloutBuffer, TerminalObservations, split_episode_ends
 
 import gymnasium as gym
 import numpy as np
@@ -192,6 +192,23 @@ class InfiniteHorizonEnv(gym.Env):
     def step(self, action):
         self.current_step += 1
         return np.zeros(2, dtype=np.float32), 1.0, False, self.current_step >= self.n_steps, {}
+
+
+def test_split_episode_ends():
+    # Env 0 runs on, env 1 terminates, env 2 is cut by its time limit (SB3's info keys)
+    dones = np.array([False, True, True])
+    infos = [{}, {"terminal_observation": np.ones(2)}, {"TimeLimit.truncated": True, "terminal_observation": np.full(2, 3.0)}]
+    terminated, truncated, terminal = split_episode_ends(dones, infos, th.device("cpu"))
+    assert terminated.tolist() == [False, True, False]
+    assert truncated.tolist() == [False, False, True]
+    assert terminal is not None and terminal.env_indices.tolist() == [2]
+    assert th.equal(terminal.observations, th.full((1, 2), 3.0)) and terminal.ok.all()
+    # No episode end: nothing to sort out
+    terminated, truncated, terminal = split_episode_ends(np.zeros(3, dtype=bool), [{}] * 3, th.device("cpu"))
+    assert not terminated.any() and not truncated.any() and terminal is None
+    # A truncation without the real last observation cannot be bootstrapped: a clear error
+    with pytest.raises(ValueError, match="terminal_observation"):
+        split_episode_ends(np.array([True]), [{"TimeLimit.truncated": True}], th.device("cpu"))
 
 
 def test_infinite_horizon_env_is_valid():

@@ -152,6 +152,17 @@ def test_env_method_and_attributes():
         pool.env_method("render")
 
 
+def test_sb3_backends_render_mode():
+    # As SB3's make_vec_env for an env id: rgb_array unless the caller says otherwise, in every worker
+    for backend in ("dummy", "subproc"):
+        vec_env = make_vec_env("Pendulum-v1", n_envs=2, backend=backend, seed=0)
+        assert vec_env.get_attr("render_mode") == ["rgb_array", "rgb_array"]
+        vec_env.close()
+    vec_env = make_vec_env("Pendulum-v1", n_envs=2, backend="subproc", env_kwargs={"render_mode": None})
+    assert vec_env.get_attr("render_mode") == [None, None]
+    vec_env.close()
+
+
 def test_unknown_backend_and_task():
     with pytest.raises(ValueError, match="Unknown vec-env backend 'ray'"):
         make_vec_env("Pendulum-v1", backend="ray")

@@ -31,8 +31,14 @@ def register_optional_envs() -> None:
 
 
 def _make_registered(env_id: str, **kwargs: Any) -> gym.Env:
-    """``gym.make`` in a fresh worker process, where only the envs registered on import exist."""
+    """
+    ``gym.make`` in a fresh worker process, where only the envs registered on import exist; like SB3's
+    ``make_vec_env`` for an id, it asks for ``render_mode="rgb_array"`` unless told otherwise or the env refuses it.
+    """
     register_optional_envs()
+    if "render_mode" not in kwargs:
+        with contextlib.suppress(TypeError):
+            return gym.make(env_id, render_mode="rgb_array", **kwargs)
     return gym.make(env_id, **kwargs)
 
 
