@@ -1,4 +1,3 @@
-import warnings
 from typing import Any, ClassVar, TypeVar
 
 from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, observations_to_tensor, split_episode_ends
@@ -12,6 +11,7 @@ from sb3_cgac.hyperparameters import (
     parse_ent_coef,
     resolve_batch_size,
     scaled_polyak_rates,
+    warn_few_envs,
 )
 from sb3_cgac.losses import (
     actor_loss,
@@ -21,6 +21,7 @@ from sb3_cgac.losses import (
     update_log_ent_coef,
 )
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
+from sb3_cgac.wrappers import warn_synchronised_resets
 
 import numpy as np
 import torch as th
@@ -96,16 +97,13 @@ class CGAC(OnPolicyAlgorithm):
     :param clip_actor_gradient_outliers: Clip outliers of dQ/da in the actor update, as the paper's code can:
         when the mean over action dims of max|g| / median|g| exceeds twice its running average, each dim of
         dQ/da is clamped to its [50th, 95th] percentile range over the batch
-    :param behaviour_kl_coef: Weight of a trust-region penalty ``KL(averaged actor || actor)`` in the actor loss
-        (not in the paper; 0: off): the critics are fitted to the averaged actor's actions only, and this keeps the
-        actor from following their gradient far from them
-    :param compile_updates: Compile the losses of the critic and actor updates (forward and backward passes) with
-        ``torch.compile``: True, or a dict of ``torch.compile`` keyword arguments (e.g. ``{"mode": "max-autotune"}``).
-        The first updates take a while to compile (a C++ compiler is needed on CPU). Not with
-        ``clip_actor_gradient_outliers``, whose actor update stays uncompiled
-    :param update_precision: ``"float32"``, or ``"bfloat16"`` to run the networks of the updates under bfloat16
-        autocast (CUDA, or CPUs with AVX512-BF16 or AMX); losses, optimizers and collection stay in float32, and so
-        does the actor update with ``clip_actor_gradient_outliers``
+    :param behaviour_kl_coef: Weight of a penalty ``KL(averaged actor || actor)`` in the actor loss (not in the
+        paper; 0: off): it keeps the actor near the actions the critics were fitted to
+    :param compile_updates: ``torch.compile`` the critic and actor losses: True, or a dict of its keyword arguments.
+        The first updates compile (a C++ compiler is needed on CPU); the outlier-clipped actor loss stays uncompiled
+    :param update_precision: ``"float32"``, or ``"bfloat16"`` to run the update's networks under bfloat16 autocast
+        (CUDA, or CPUs with AVX512-BF16 or AMX); losses, optimizers, collection and the outlier-clipped actor loss
+        stay in float32
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -226,14 +224,7 @@ class CGAC(OnPolicyAlgorithm):
         self._check_hyperparameters()
         if _init_setup_model:
             self._setup_model()
-            if self.n_envs < FEW_ENVS:
-                warnings.warn(
-                    f"CGAC is built for many parallel environments (the paper uses 4096) and learns poorly from few: "
-                    f"this model has n_envs={self.n_envs}. Use a vectorised env with more copies, e.g. "
-                    "make_vec_env(env_id, n_envs=64).",
-                    UserWarning,
-                    stacklevel=2,
-                )
+            warn_few_envs(self.n_envs)
 
     @staticmethod
     def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
@@ -365,7 +356,7 @@ class CGAC(OnPolicyAlgorithm):
 
             terminated, truncated, terminal = split_episode_ends(dones, infos, self.device)
             if terminal is not None and len(terminal.env_indices) == env.num_envs >= FEW_ENVS:
-                self._warn_synchronised_resets()
+                self._warned_synchronised_resets = warn_synchronised_resets(self._warned_synchronised_resets)
 
             obs_tensor, obs_ok = observations_to_tensor(new_obs, self.device)
             self.policy.update_obs_normalizer(obs_tensor, obs_ok)
@@ -393,29 +384,9 @@ class CGAC(OnPolicyAlgorithm):
         callback.on_rollout_end()
         return True
 
-    def _warn_synchronised_resets(self) -> None:
-        if not self._warned_synchronised_resets:
-            self._warned_synchronised_resets = True
-            warnings.warn(
-                "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
-                "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
-                "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
-                "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
-                UserWarning,
-                stacklevel=3,
-            )
-
     def _critic_step(self, data: CGACSamples, weight_sum: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        critic_loss, q_mean = self._critic_loss_fn(
-            self.critic,
-            data.observations,
-            data.actions,
-            data.returns,
-            data.weights,
-            weight_sum,
-            self.critic_loss,
-            self._autocast_dtype,
-        )
+        # data: observations, actions, returns and weights, in the order of losses.critic_loss
+        critic_loss, q_mean = self._critic_loss_fn(self.critic, *data, weight_sum, self.critic_loss, self._autocast_dtype)
         self.critic.optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
         grad_norm = th.nn.utils.clip_grad_norm_(self._critic_parameters, self.max_grad_norm)
@@ -424,7 +395,7 @@ class CGAC(OnPolicyAlgorithm):
 
     def _actor_step(
         self, data: CGACSamples, weight_sum: th.Tensor, target_entropy: float
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor | None]:
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.log_ent_coef is not None else self.ent_coef_tensor
         # Critic gradients are not needed for the actor loss (paper Eq. 7): skip their computation
         self.critic.set_q_requires_grad(False)
@@ -448,17 +419,10 @@ class CGAC(OnPolicyAlgorithm):
             grad_norm = th.nn.utils.get_total_norm([param.grad for param in self._actor_parameters if param.grad is not None])
         self.actor.optimizer.step()
 
-        ent_coef_loss = None
+        ent_coef_loss = th.zeros_like(actor_loss)  # logged only when alpha is learned
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-            ent_coef_loss = update_log_ent_coef(
-                self.log_ent_coef,
-                self.ent_coef_optimizer,
-                log_prob,
-                data.weights,
-                weight_sum,
-                target_entropy,
-                self.ent_coef_monotone,
-            )
+            alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
+            ent_coef_loss = update_log_ent_coef(self.log_ent_coef, self.ent_coef_optimizer, *alpha_args)
         entropy = -(log_prob * data.weights).sum() / weight_sum
         return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
 
@@ -500,9 +464,7 @@ class CGAC(OnPolicyAlgorithm):
             critic_stats.append(th.stack(self._critic_step(data, weight_sum)))
             self._n_updates += 1
             if self._n_updates % self.policy_delay == 0:
-                actor_loss, grad_norm, entropy, ent_coef_loss = self._actor_step(data, weight_sum, target_entropy)
-                ent_coef_loss = ent_coef_loss if ent_coef_loss is not None else th.zeros_like(actor_loss)
-                actor_stats.append(th.stack([actor_loss, grad_norm, entropy, ent_coef_loss]))
+                actor_stats.append(th.stack(self._actor_step(data, weight_sum, target_entropy)))
                 self._polyak_updates()
 
         self.policy.set_training_mode(False)

@@ -3,6 +3,7 @@ CGAC's hyperparameter rules: the checks of what a user passes, and how the paper
 envs) become the values used at another number of envs. Pure functions, so that scripts use the same rules.
 """
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -204,3 +205,15 @@ def decayed_learning_rate(
         return learning_rate
     fraction = min(1.0, iterations / decay_iterations)
     return learning_rate + fraction * (final_learning_rate - learning_rate)
+
+
+def warn_few_envs(n_envs: int) -> None:
+    """Warn that CGAC learns poorly from fewer than ``FEW_ENVS`` parallel envs (at the user's constructor call)."""
+    if n_envs < FEW_ENVS:
+        warnings.warn(
+            f"CGAC is built for many parallel environments (the paper uses 4096) and learns poorly from few: "
+            f"this model has n_envs={n_envs}. Use a vectorised env with more copies, e.g. "
+            "make_vec_env(env_id, n_envs=64).",
+            UserWarning,
+            stacklevel=3,
+        )

@@ -1,5 +1,6 @@
 """Gymnasium wrappers for training with many parallel envs."""
 
+import warnings
 from typing import Any, SupportsFloat
 
 import gymnasium as gym
@@ -60,3 +61,22 @@ class RandomFirstEpisodeLength(gym.Wrapper):
                 truncated = True
         self._episode_ended = bool(terminated or truncated)
         return obs, reward, terminated, truncated, info
+
+
+def warn_synchronised_resets(already_warned: bool) -> bool:
+    """
+    Warn, once, that all envs reached their time limit at the same step (called by CGAC's rollout collection).
+
+    :param already_warned: Whether this warning was given before (then nothing is shown)
+    :return: True (the warning has now been given)
+    """
+    if not already_warned:
+        warnings.warn(
+            "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
+            "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
+            "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
+            "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
+            UserWarning,
+            stacklevel=3,
+        )
+    return True
