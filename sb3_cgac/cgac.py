@@ -423,7 +423,7 @@ class CGAC(OnPolicyAlgorithm):
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
             ent_coef_loss = update_log_ent_coef(self.log_ent_coef, self.ent_coef_optimizer, *alpha_args)
-        entropy = -(log_prob * data.weights).sum() / weight_sum
+        entropy = -(log_prob.detach() * data.weights).sum() / weight_sum
         return actor_loss.detach(), grad_norm, entropy, ent_coef_loss
 
     @th.no_grad()
