@@ -291,10 +291,13 @@ def summarise(
     finals = {run: results[results["run"] == run].sort_values("steps").groupby("seed")["mean_return"].last() for run in runs}
     threshold_source = "given"
     if threshold is None:
-        if references[0] not in runs or len(finals[references[0]]) == 0:
-            raise ValueError(f"No {references[0]} run to take the threshold from: pass --threshold.")
-        threshold_source = f"best of {references[0]}'s final returns"
-        threshold = float(finals[references[0]].max())
+        # A partial comparison (e.g. `--runs cgac` first) has no reference run yet: take the best final of all runs
+        with_results = [run for run in runs if len(finals[run]) > 0]  # load_results found at least one
+        if references[0] in with_results:
+            threshold_source, sources = f"best of {references[0]}'s final returns", [references[0]]
+        else:
+            threshold_source, sources = f"best final return of any run; no {references[0]} run yet", with_results
+        threshold = float(max(finals[run].max() for run in sources))
     stats: dict[str, dict[str, float]] = {}
     for run in runs:
         # The evaluation before training is left out: an untrained policy can score well (a motionless Ant

@@ -1,4 +1,4 @@
-"""sb3_cgac.scaling: time to a fraction of the best return against the action dimensions."""
+"""sb3_cgac.scaling: time to a fraction of the best return against the action dimensions; the compare summary it reads."""
 
 import numpy as np
 import pytest
@@ -48,3 +48,17 @@ def test_fraction_is_checked(tmp_path):
     with pytest.raises(ValueError, match="--fraction"):
         main([str(tmp_path), "--fraction", "1.5"])
     assert np.isfinite(time_to_fraction(pd.DataFrame(evaluations("ppo", 0, [0, 1])), 1.0))
+
+
+def test_compare_summary_without_reference_run(tmp_path):
+    # A partial comparison (CGAC first, PPO later) still gets a table: its threshold is the best final of its runs
+    from sb3_cgac.compare import run_paths, summarise
+
+    (tmp_path / "runs").mkdir()
+    for seed, returns in enumerate([[0, 5, 10], [0, 20, 15]]):
+        csv_path, done_path, _ = run_paths(tmp_path, "cgac", seed)
+        pd.DataFrame(evaluations("cgac", seed, returns)).to_csv(csv_path, index=False)
+        done_path.write_text('{"steps": 2000, "seconds": 120.0}')
+    table = summarise(tmp_path, ["cgac"], 2, None)
+    assert "Threshold: 15.0 (best final return of any run; no ppo run yet)" in table
+    assert "| cgac | 2 | 12 +/- 2 |" in table
