@@ -355,8 +355,10 @@ class CGAC(OnPolicyAlgorithm):
             self.num_timesteps += env.num_envs
 
             terminated, truncated, terminal = split_episode_ends(dones, infos, self.device)
-            if terminal is not None and len(terminal.env_indices) == env.num_envs >= FEW_ENVS:
-                self._warned_synchronised_resets = warn_synchronised_resets(self._warned_synchronised_resets)
+            all_truncated = terminal is not None and len(terminal.env_indices) == env.num_envs >= FEW_ENVS
+            if all_truncated and not self._warned_synchronised_resets:
+                self._warned_synchronised_resets = True
+                warn_synchronised_resets()
 
             obs_tensor, obs_ok = observations_to_tensor(new_obs, self.device)
             self.policy.update_obs_normalizer(obs_tensor, obs_ok)

@@ -63,20 +63,13 @@ class RandomFirstEpisodeLength(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def warn_synchronised_resets(already_warned: bool) -> bool:
-    """
-    Warn, once, that all envs reached their time limit at the same step (called by CGAC's rollout collection).
-
-    :param already_warned: Whether this warning was given before (then nothing is shown)
-    :return: True (the warning has now been given)
-    """
-    if not already_warned:
-        warnings.warn(
-            "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
-            "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
-            "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
-            "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
-            UserWarning,
-            stacklevel=3,
-        )
-    return True
+def warn_synchronised_resets() -> None:
+    """Warn that all envs reached their time limit at the same step (CGAC's rollout collection warns once per model)."""
+    warnings.warn(
+        "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
+        "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
+        "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
+        "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
+        UserWarning,
+        stacklevel=3,
+    )

@@ -195,3 +195,11 @@ def test_behaviour_kl_coef_keeps_the_actor_near_the_averaged_actor():
         return (mean - mean_b).abs().mean().item()
 
     assert gap(100.0) < 0.5 * gap(0.0)
+
+
+def test_synchronised_resets_warning_is_given_once():
+    # Two synchronised time limits (steps 200 and 400 of every env): one warning per model, not one per episode
+    kwargs = dict(policy_kwargs=dict(net_arch=[8]), buffer_window=4, seed=0)
+    with pytest.warns(UserWarning) as record:
+        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16, seed=0), **kwargs).learn(16 * 401)
+    assert sum("same step" in str(warning.message) for warning in record) == 1
