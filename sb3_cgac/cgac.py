@@ -73,12 +73,11 @@ class CGAC(OnPolicyAlgorithm):
     :param gae_lambda: lambda of the Q-GAE targets
     :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window;
         the paper uses 8 for SNU humanoid and AllegroHand)
-    :param tau: Polyak coefficient of the target critic, applied at every actor update (1 turns value averaging
-        off). None: the paper's tau_Q = 0.005, which it applies once per 4096 new transitions, scaled to the number
-        ``m = n_envs * policy_delay / critic_updates_per_step`` of new transitions per actor update here:
-        ``1 - (1 - 0.005) ** sqrt(4096 / m)`` (the paper's value at 4096 envs, 0.039 at 64 envs)
-    :param policy_tau: Polyak coefficient of the averaged actor, applied at every actor update (1 turns policy
-        averaging off). None: the paper's tau_pi = 0.001 scaled the same way (0.008 at 64 envs)
+    :param tau: Polyak coefficient of the target critic at every actor update (1: no averaging). None: the paper's
+        tau_Q = 0.005 per 4096 new transitions, scaled to the ``m = n_envs * policy_delay / critic_updates_per_step``
+        new transitions per actor update here as ``1 - (1 - 0.005) ** sqrt(4096 / m)`` (0.039 at 64 envs)
+    :param policy_tau: Polyak coefficient of the averaged actor at every actor update (1: no averaging). None: the
+        paper's tau_pi = 0.001 scaled the same way (0.008 at 64 envs)
     :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
         to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
     :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12);
@@ -99,11 +98,10 @@ class CGAC(OnPolicyAlgorithm):
         dQ/da is clamped to its [50th, 95th] percentile range over the batch
     :param behaviour_kl_coef: Weight of a penalty ``KL(averaged actor || actor)`` in the actor loss (not in the
         paper; 0: off): it keeps the actor near the actions the critics were fitted to
-    :param compile_updates: ``torch.compile`` the critic and actor losses: True, or a dict of its keyword arguments.
-        The first updates compile (a C++ compiler is needed on CPU); the outlier-clipped actor loss stays uncompiled
-    :param update_precision: ``"float32"``, or ``"bfloat16"`` to run the update's networks under bfloat16 autocast
-        (CUDA, or CPUs with AVX512-BF16 or AMX); losses, optimizers, collection and the outlier-clipped actor loss
-        stay in float32
+    :param compile_updates: ``torch.compile`` the critic and actor losses: True, or a dict of its keyword arguments
+        (a C++ compiler is needed on CPU; the outlier-clipped actor loss stays uncompiled)
+    :param update_precision: ``"float32"``, or ``"bfloat16"``: the update's networks under bfloat16 autocast (CUDA,
+        or CPUs with AVX512-BF16 or AMX); losses, optimizers, collection and the outlier-clipped actor loss stay float32
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -435,13 +433,13 @@ class CGAC(OnPolicyAlgorithm):
         th._foreach_lerp_(critic_target, self._critic_parameters, self._tau)
         th._foreach_lerp_(actor_avg, self._actor_parameters, self._policy_tau)
 
-    def _decayed(self, learning_rate: float) -> float:
-        iterations = self._n_updates // (self.critic_updates_per_step * self.n_steps)
-        return decayed_learning_rate(learning_rate, self.final_learning_rate, iterations, self.lr_decay_iterations)
-
     def _update_learning_rates(self) -> None:
         progress = self._current_progress_remaining
-        actor_lr, critic_lr = self._decayed(self.lr_schedule(progress)), self._decayed(self.critic_lr_schedule(progress))
+        iterations = self._n_updates // (self.critic_updates_per_step * self.n_steps)
+        actor_lr, critic_lr = (
+            decayed_learning_rate(schedule(progress), self.final_learning_rate, iterations, self.lr_decay_iterations)
+            for schedule in (self.lr_schedule, self.critic_lr_schedule)
+        )
         update_learning_rate(self.actor.optimizer, actor_lr)
         update_learning_rate(self.critic.optimizer, critic_lr)
         self.logger.record("train/learning_rate", actor_lr)
@@ -480,24 +478,16 @@ class CGAC(OnPolicyAlgorithm):
             if self.ent_coef_optimizer is None:
                 del stats["ent_coef_loss"]
         stats.update(tau=self._tau, policy_tau=self._policy_tau, target_entropy=target_entropy)
-        stats.update(beta=self.target_entropy_beta, ent_coef=self._current_ent_coef())
+        ent_coef = self.ent_coef_tensor if self.log_ent_coef is None else th.exp(self.log_ent_coef.detach())
+        stats.update(beta=self.target_entropy_beta, ent_coef=ent_coef.item())
         if isinstance(self.actor.log_std, th.nn.Parameter):
             stats["std"] = th.exp(self.actor.log_std.detach()).mean().item()
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, value in stats.items():
             self.logger.record(f"train/{key}", value)
 
-    def _current_ent_coef(self) -> float:
-        if self.log_ent_coef is not None:
-            return float(th.exp(self.log_ent_coef.detach()).item())
-        return float(self.ent_coef_tensor.item())
-
     def _check_finite_parameters(self) -> None:
-        params: list[th.Tensor] = [*self._actor_parameters, *self._critic_parameters]
-        if self.log_ent_coef is not None:
-            params.append(self.log_ent_coef)
-        # One foreach call: a norm is finite exactly when its tensor is (up to overflow, itself a failure)
-        if not bool(th.stack(th._foreach_norm([param.detach() for param in params])).isfinite().all()):
+        if not self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef])):
             raise RuntimeError(
                 f"CGAC: network parameters became NaN/Inf after {self._n_updates} critic updates; training cannot go on. "
                 "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
@@ -513,11 +503,6 @@ class CGAC(OnPolicyAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfCGAC:
-        """
-        Train the model (see ``BaseAlgorithm.learn``).
-
-        :param log_interval: Log every ``log_interval`` iterations (an iteration collects ``n_steps * n_envs`` steps)
-        """
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
@@ -537,10 +522,6 @@ class CGAC(OnPolicyAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
-        saved_pytorch_variables = ["gradient_ratio_average"]
         if self.ent_coef_optimizer is not None:
-            saved_pytorch_variables.append("log_ent_coef")
-            state_dicts.append("ent_coef_optimizer")
-        else:
-            saved_pytorch_variables.append("ent_coef_tensor")
-        return state_dicts, saved_pytorch_variables
+            return [*state_dicts, "ent_coef_optimizer"], ["gradient_ratio_average", "log_ent_coef"]
+        return state_dicts, ["gradient_ratio_average", "ent_coef_tensor"]

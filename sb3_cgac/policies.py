@@ -420,6 +420,12 @@ class CGACPolicy(BasePolicy):
         """
         return self.critic_target.q_values(obs, actions).min(dim=0).values
 
+    def parameters_finite(self, *extra: th.Tensor) -> bool:
+        """Whether all parameters of the policy (and the ``extra`` tensors) are finite, in one foreach call."""
+        # A norm is finite exactly when its tensor is (up to overflow, itself a failure)
+        norms = th._foreach_norm([tensor.detach() for tensor in (*self.parameters(), *extra)])
+        return bool(th.stack(norms).isfinite().all())
+
     def set_training_mode(self, mode: bool) -> None:
         """
         Put the trained networks in training or evaluation mode (the averaged copies stay in evaluation mode).
