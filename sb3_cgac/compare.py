@@ -2,7 +2,8 @@
 CGAC vs SB3 PPO vs SB3 SAC on one env, same machine, same budget (needs the ``zoo`` extra, and ``envpool`` for
 ``--backend envpool``)::
 
-    python -m sb3_cgac.compare --env HalfCheetah-v5 --seeds 3 --minutes 10 --backend envpool --jobs 2 --out results/HC
+    python -m sb3_cgac.compare --env HalfCheetah-v5 --seeds 3 --minutes 10 --backend envpool --jobs 2 \\
+        --out results/HalfCheetah-v5
     python -m sb3_cgac.compare --env Pendulum-v1 --seeds 3 --steps 100000 --runs cgac ppo sac
 
 Each run name is a hyperparameter file of this repo: ``cgac``, ``ppo``, ``sac`` read ``hyperparams/<name>.yml``,

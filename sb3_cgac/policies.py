@@ -421,9 +421,11 @@ class CGACPolicy(BasePolicy):
         return self.critic_target.q_values(obs, actions).min(dim=0).values
 
     def parameters_finite(self, *extra: th.Tensor) -> bool:
-        """Whether all parameters of the policy (and the ``extra`` tensors) are finite, in one foreach call."""
-        # A norm is finite exactly when its tensor is (up to overflow, itself a failure)
-        norms = th._foreach_norm([tensor.detach() for tensor in (*self.parameters(), *extra)])
+        """Whether the trained networks' parameters (and the ``extra`` tensors) are finite, in one foreach call."""
+        # The averaged copies are convex combinations of these, so they need no check of their own. A norm is finite
+        # exactly when its tensor is (up to overflow, itself a failure)
+        tensors = (*self.actor.parameters(), *self.critic.parameters(), *extra)
+        norms = th._foreach_norm([tensor.detach() for tensor in tensors])
         return bool(th.stack(norms).isfinite().all())
 
     def set_training_mode(self, mode: bool) -> None:
