@@ -13,13 +13,7 @@ from sb3_cgac.hyperparameters import (
     scaled_polyak_rates,
     warn_few_envs,
 )
-from sb3_cgac.losses import (
-    actor_loss,
-    behaviour_kl,
-    critic_loss,
-    outlier_clipped_actor_loss,
-    update_log_ent_coef,
-)
+from sb3_cgac.losses import actor_loss, behaviour_kl, critic_loss, outlier_clipped_actor_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.wrappers import warn_synchronised_resets
 
@@ -45,11 +39,9 @@ class CGAC(OnPolicyAlgorithm):
     Each iteration collects ``n_steps`` steps of every env with the *averaged actor* into a window of the last
     ``buffer_window`` steps, computes Q-GAE(lambda) targets from the *target critic* (Eq. 9-10), then runs
     ``critic_updates_per_step`` critic updates per collected step on uniform minibatches of the window, with an
-    actor and entropy-coefficient update (SAC-style, Eq. 7 and 12) every ``policy_delay`` critic updates,
-    each followed by the Polyak updates of both averaged copies.
-    The defaults are the paper's schedule: one new step per iteration, a 32-step window, two critic updates
-    and one actor update per step. ``n_steps == buffer_window`` gives a PPO-like schedule instead
-    (a fresh buffer every rollout).
+    actor and entropy-coefficient update (SAC-style, Eq. 7 and 12) and the Polyak updates of both averaged copies
+    every ``policy_delay`` critic updates. The defaults are the paper's schedule (one new step per iteration, a
+    32-step window, two critic updates and one actor update per step); ``n_steps == buffer_window`` is PPO-like.
 
     :param policy: The policy model to use (MlpPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str). Use many parallel envs.
@@ -226,8 +218,7 @@ class CGAC(OnPolicyAlgorithm):
 
     @staticmethod
     def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
-        # The one check of the action space, for every env given (constructor, set_env, load): before SB3's own
-        # checks, which give less helpful messages
+        # The one check of the action space, for every env (constructor, set_env, load), before SB3's terser checks
         check_action_space(env.action_space)
         return OnPolicyAlgorithm._wrap_env(env, verbose, monitor_wrapper)
 
@@ -295,10 +286,8 @@ class CGAC(OnPolicyAlgorithm):
         # Parameter lists of the update loop, gathered once (module traversals cost more than the small nets' ops)
         self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
-        self._averaged_parameters: tuple[list[th.Tensor], list[th.Tensor]] = (
-            list(self.critic_target.parameters()),
-            list(self.actor_avg.parameters()),
-        )
+        self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
+        self._actor_avg_parameters: list[th.Tensor] = list(self.actor_avg.parameters())
 
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         if self.entropy_schedule is not None:
@@ -429,9 +418,8 @@ class CGAC(OnPolicyAlgorithm):
     @th.no_grad()
     def _polyak_updates(self) -> None:
         # target <- (1 - tau) * target + tau * online, all parameters of a network in one foreach call
-        critic_target, actor_avg = self._averaged_parameters
-        th._foreach_lerp_(critic_target, self._critic_parameters, self._tau)
-        th._foreach_lerp_(actor_avg, self._actor_parameters, self._policy_tau)
+        th._foreach_lerp_(self._critic_target_parameters, self._critic_parameters, self._tau)
+        th._foreach_lerp_(self._actor_avg_parameters, self._actor_parameters, self._policy_tau)
 
     def _update_learning_rates(self) -> None:
         progress = self._current_progress_remaining
@@ -468,7 +456,12 @@ class CGAC(OnPolicyAlgorithm):
                 self._polyak_updates()
 
         self.policy.set_training_mode(False)
-        self._check_finite_parameters()
+        if not self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef])):
+            raise RuntimeError(
+                f"CGAC: network parameters became NaN/Inf after {self._n_updates} critic updates; training cannot go on. "
+                "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
+                "too high, or gradient clipping turned off (max_grad_norm)."
+            )
         # One read of the statistics per iteration (no host-device sync inside the update loop)
         critic_names = ("critic_loss", "q_mean", "critic_grad_norm")
         stats = dict(zip(critic_names, th.stack(critic_stats).mean(dim=0).tolist(), strict=True))
@@ -485,14 +478,6 @@ class CGAC(OnPolicyAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, value in stats.items():
             self.logger.record(f"train/{key}", value)
-
-    def _check_finite_parameters(self) -> None:
-        if not self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef])):
-            raise RuntimeError(
-                f"CGAC: network parameters became NaN/Inf after {self._n_updates} critic updates; training cannot go on. "
-                "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
-                "too high, or gradient clipping turned off (max_grad_norm)."
-            )
 
     def learn(
         self: SelfCGAC,
@@ -514,11 +499,11 @@ class CGAC(OnPolicyAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         # Aliases into the policy (saved with it), and state rebuilt by _setup_model or at the next learn()
-        runtime = ["_pending_actions", "_rollout_obs", "_entropy_schedule_callback", "_warned_synchronised_resets"]
-        update_functions = ["_autocast_dtype", "_critic_loss_fn", "_actor_loss_fn"]
-        parameter_lists = ["_critic_parameters", "_actor_parameters", "_averaged_parameters"]
-        aliases = ["actor", "actor_avg", "critic", "critic_target"]
-        return [*super()._excluded_save_params(), *aliases, *runtime, *update_functions, *parameter_lists]
+        excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs"]
+        excluded += ["_entropy_schedule_callback", "_warned_synchronised_resets", "_autocast_dtype", "_critic_loss_fn"]
+        excluded += ["_actor_loss_fn", "_critic_parameters", "_actor_parameters"]
+        excluded += ["_critic_target_parameters", "_actor_avg_parameters"]
+        return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
