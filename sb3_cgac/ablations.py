@@ -1,8 +1,9 @@
 """
 The paper's ablations (Fig. 3) on a cheap env: number of parallel envs, no policy averaging, no value averaging,
-neither, no alpha clamp and the paper's alpha clamp. Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml``
-with one change, run by ``sb3_cgac.compare`` (same budget options, CSV, plots and table; times are compared with
-the full CGAC)::
+neither, no alpha clamp and the paper's alpha clamp; and this package's stabilisers switched on one at a time:
+first episodes cut at random lengths, the learning-rate decay (to 1e-4 over 4k iterations) and LayerNorm critics.
+Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml`` with one change, run by ``sb3_cgac.compare`` (same
+budget options, CSV, plots and table; times are compared with the full CGAC)::
 
     python -m sb3_cgac.ablations --env HalfCheetah-v5 --backend envpool --seeds 2 --minutes 10 --jobs 2
     python -m sb3_cgac.ablations --env Hopper-v5 --steps 2000000 --variants cgac no_pol_avg no_val_avg
@@ -27,6 +28,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "no_polval_avg": {"policy_tau": 1.0, "tau": 1.0},
     "no_alpha_clamp": {"ent_coef_monotone": False},
     "paper_alpha_clamp": {"ent_coef_monotone": True},  # alpha never increases, even below the target entropy
+    "random_first_episode": {"random_first_episode": True},
+    # The authors decay over 20k iterations of 4096 envs; 4k iterations fit a run of minutes on one core
+    "lr_decay": {"final_learning_rate": 1e-4, "lr_decay_iterations": 4000},
+    "critic_layer_norm": {"policy_kwargs": {"critic_layer_norm": True}},
 }
 
 
@@ -41,7 +46,12 @@ def main() -> None:
         return
     entry = yaml.safe_load((HYPERPARAMS_DIR / "cgac.yml").read_text())[env_id]
     n_envs = known.n_envs or [max(1, entry["n_envs"] // 4), entry["n_envs"] * 4]
-    variants = dict(VARIANTS)
+    variants = {name: dict(overrides) for name, overrides in VARIANTS.items()}
+    for overrides in variants.values():
+        if isinstance(overrides.get("policy_kwargs"), dict):
+            # Added to the entry's own policy_kwargs (a "dict(...)" string in the YAML file)
+            extra = ", ".join(f"{key}={value!r}" for key, value in overrides["policy_kwargs"].items())
+            overrides["policy_kwargs"] = f"dict(**{entry.get('policy_kwargs', 'dict()')}, {extra})"
     for count in n_envs:
         variants[f"n_envs_{count}"] = {"n_envs": count}
         if (entry.get("batch_size") or 0) > count * entry.get("buffer_window", 32):

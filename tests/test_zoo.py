@@ -180,12 +180,12 @@ def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
         [sys.executable, "-m", "sb3_cgac.ablations", "--env", "Pendulum-v1", "--variants", "cgac", "no_pol_avg",
-         "n_envs_16", "--seeds", "1", "--steps", "640", "--jobs", "2", "--eval-episodes", "1", "--eval-envs", "1",
-         "--out", str(out)],
+         "n_envs_16", "critic_layer_norm", "--seeds", "1", "--steps", "640", "--jobs", "2", "--eval-episodes", "1",
+         "--eval-envs", "1", "--out", str(out)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     table = (out / "summary.md").read_text()
     assert "best of cgac's final returns" in table
-    for variant in ("cgac", "no_pol_avg", "n_envs_16"):
+    for variant in ("cgac", "no_pol_avg", "n_envs_16", "critic_layer_norm"):
         assert f"| {variant} |" in table
