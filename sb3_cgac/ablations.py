@@ -1,7 +1,8 @@
 """
 The paper's ablations (Fig. 3) on a cheap env: number of parallel envs, no policy averaging, no value averaging,
 neither, no alpha clamp and the paper's alpha clamp; and this package's stabilisers switched on one at a time:
-first episodes cut at random lengths, the learning-rate decay (to 1e-4 over 4k iterations) and LayerNorm critics.
+first episodes cut at random lengths, the learning-rate decay (to 1e-4 over 4k iterations), LayerNorm critics and
+the actor's initial mean layer scaled by 0.01 (``small_mean_init``) or not (``full_mean_init``).
 Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml`` with one change, run by ``sb3_cgac.compare`` (same
 budget options, CSV, plots and table; times are compared with the full CGAC)::
 
@@ -32,7 +33,32 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # The authors decay over 20k iterations of 4096 envs; 4k iterations fit a run of minutes on one core
     "lr_decay": {"final_learning_rate": 1e-4, "lr_decay_iterations": 4000},
     "critic_layer_norm": {"policy_kwargs": {"critic_layer_norm": True}},
+    # The actor's initial mean layer scaled by 0.01 (near-zero initial actions), or left as initialised (the paper's)
+    "small_mean_init": {"policy_kwargs": {"mean_init_scale": 0.01}},
+    "full_mean_init": {"policy_kwargs": {"mean_init_scale": 1.0}},
 }
+
+
+def entry_variants(entry: dict[str, Any], n_envs: list[int] | None = None) -> dict[str, dict[str, Any]]:
+    """
+    The overrides of each variant for one YAML entry.
+
+    :param entry: The ``cgac`` entry of the env
+    :param n_envs: Env counts of the ``n_envs_<N>`` variants (default: a quarter and four times the entry's)
+    :return: Variant name -> hyperparameters that replace the entry's
+    """
+    variants = {name: dict(overrides) for name, overrides in VARIANTS.items()}
+    for overrides in variants.values():
+        if isinstance(overrides.get("policy_kwargs"), dict):
+            # Added to (or replacing keys of) the entry's own policy_kwargs, a "dict(...)" string in the YAML file
+            extra = ", ".join(f"{key!r}: {value!r}" for key, value in overrides["policy_kwargs"].items())
+            overrides["policy_kwargs"] = f"{{**{entry.get('policy_kwargs', 'dict()')}, {extra}}}"
+    for count in n_envs or [max(1, entry["n_envs"] // 4), entry["n_envs"] * 4]:
+        variants[f"n_envs_{count}"] = {"n_envs": count}
+        if (entry.get("batch_size") or 0) > count * entry.get("buffer_window", 32):
+            # The entry's batch does not fit in the smaller window: CGAC's default (the whole window) instead
+            variants[f"n_envs_{count}"]["batch_size"] = None
+    return variants
 
 
 def main() -> None:
@@ -45,18 +71,7 @@ def main() -> None:
         compare_main(argv=["--help"])
         return
     entry = yaml.safe_load((HYPERPARAMS_DIR / "cgac.yml").read_text())[env_id]
-    n_envs = known.n_envs or [max(1, entry["n_envs"] // 4), entry["n_envs"] * 4]
-    variants = {name: dict(overrides) for name, overrides in VARIANTS.items()}
-    for overrides in variants.values():
-        if isinstance(overrides.get("policy_kwargs"), dict):
-            # Added to the entry's own policy_kwargs (a "dict(...)" string in the YAML file)
-            extra = ", ".join(f"{key}={value!r}" for key, value in overrides["policy_kwargs"].items())
-            overrides["policy_kwargs"] = f"dict(**{entry.get('policy_kwargs', 'dict()')}, {extra})"
-    for count in n_envs:
-        variants[f"n_envs_{count}"] = {"n_envs": count}
-        if (entry.get("batch_size") or 0) > count * entry.get("buffer_window", 32):
-            # The entry's batch does not fit in the smaller window: CGAC's default (the whole window) instead
-            variants[f"n_envs_{count}"]["batch_size"] = None
+    variants = entry_variants(entry, known.n_envs)
     chosen = known.variants or list(variants)
     unknown = [name for name in chosen if name not in variants]
     if unknown:

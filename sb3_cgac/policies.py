@@ -1,5 +1,6 @@
 """Policies for CGAC: a tanh-squashed Gaussian actor, twin Q critics and their Polyak-averaged copies."""
 
+import math
 from typing import Any
 
 from sb3_cgac.critics import CGACCritic, xavier_init
@@ -106,6 +107,7 @@ class Actor(BasePolicy):
     :param state_dependent_std: Whether the log standard deviation is a head of the network (as in SAC)
         instead of a learnable state-independent vector (the paper's code)
     :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
+    :param mean_init_scale: Factor on the initial weights and bias of the layer that outputs the Gaussian's mean
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
     """
 
@@ -122,6 +124,7 @@ class Actor(BasePolicy):
         log_std_init: float = -1.0,
         state_dependent_std: bool = False,
         use_xavier_init: bool = True,
+        mean_init_scale: float = 1.0,
         normalize_images: bool = True,
     ):
         super().__init__(
@@ -137,6 +140,7 @@ class Actor(BasePolicy):
         self.log_std_init = log_std_init
         self.state_dependent_std = state_dependent_std
         self.use_xavier_init = use_xavier_init
+        self.mean_init_scale = mean_init_scale
 
         action_dim = get_action_dim(self.action_space)
         self.latent_pi = nn.Sequential(*create_mlp(features_dim, -1, net_arch, activation_fn))
@@ -149,6 +153,12 @@ class Actor(BasePolicy):
             self.log_std = nn.Parameter(th.full((action_dim,), float(log_std_init)))
         if use_xavier_init:
             xavier_init(self)
+        if mean_init_scale != 1.0:
+            # A small factor starts from near-zero mean actions whatever the observation (SB3's PPO scales its action
+            # head by 0.01 for the same reason): the untrained deterministic policy is then the env's "do nothing".
+            with th.no_grad():
+                self.mu.weight.mul_(mean_init_scale)
+                self.mu.bias.mul_(mean_init_scale)
         if isinstance(self.log_std, nn.Linear):
             # Start from the requested standard deviation whatever the initial features
             nn.init.zeros_(self.log_std.weight)
@@ -165,6 +175,7 @@ class Actor(BasePolicy):
                 log_std_init=self.log_std_init,
                 state_dependent_std=self.state_dependent_std,
                 use_xavier_init=self.use_xavier_init,
+                mean_init_scale=self.mean_init_scale,
                 features_extractor=self.features_extractor,
             )
         )
@@ -226,6 +237,9 @@ class CGACPolicy(BasePolicy):
     :param log_std_init: Initial log standard deviation of the actor (-1 in the paper's code)
     :param state_dependent_std: Whether the actor's log standard deviation depends on the state
     :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
+    :param mean_init_scale: Factor on the initial weights of the actor's mean layer: 1 keeps the initialisation
+        above; a small value such as 0.01 makes the untrained actor's mean actions near zero, so that it starts from
+        the env's "do nothing" (an Ant that stands rather than one that falls) instead of an arbitrary posture
     :param features_extractor_class: Features extractor to use
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
@@ -257,6 +271,7 @@ class CGACPolicy(BasePolicy):
         log_std_init: float = -1.0,
         state_dependent_std: bool = False,
         use_xavier_init: bool = True,
+        mean_init_scale: float = 1.0,
         features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
         features_extractor_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = True,
@@ -282,6 +297,11 @@ class CGACPolicy(BasePolicy):
             raise ValueError(
                 f"CGACPolicy needs a continuous (gymnasium.spaces.Box) action space, got {self.action_space}: CGAC "
                 "follows the gradient of Q through the action (paper Eq. 7)."
+            )
+        if not (math.isfinite(mean_init_scale) and mean_init_scale >= 0):
+            raise ValueError(
+                f"CGACPolicy: mean_init_scale must be a finite number >= 0 (a factor on the actor's initial mean layer, "
+                f"1 for the unscaled init, 0.01 for near-zero initial actions), got {mean_init_scale}."
             )
         if net_arch is None:
             net_arch = [256, 256]
@@ -311,6 +331,7 @@ class CGACPolicy(BasePolicy):
             "log_std_init": log_std_init,
             "state_dependent_std": state_dependent_std,
             "use_xavier_init": use_xavier_init,
+            "mean_init_scale": mean_init_scale,
         }
         self.critic_kwargs = {
             **net_args,
@@ -363,6 +384,7 @@ class CGACPolicy(BasePolicy):
                 log_std_init=self.actor_kwargs["log_std_init"],
                 state_dependent_std=self.actor_kwargs["state_dependent_std"],
                 use_xavier_init=self.use_xavier_init,
+                mean_init_scale=self.actor_kwargs["mean_init_scale"],
                 lr_schedule=self._dummy_schedule,  # not needed to load the policy alone
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,

@@ -72,6 +72,8 @@ def test_unbounded_box():
         (dict(max_grad_norm=0.0), "max_grad_norm must be > 0"),
         (dict(update_precision="float16"), r"unknown update_precision 'float16'; choose one of \('float32', 'bfloat16'\)"),
         (dict(compile_updates="yes"), "compile_updates must be True, False or a dict"),
+        (dict(policy_kwargs=dict(mean_init_scale=-0.01)), "mean_init_scale must be a finite number >= 0"),
+        (dict(policy_kwargs=dict(mean_init_scale=float("nan"))), "mean_init_scale must be a finite number >= 0"),
     ],
 )
 def test_inconsistent_hyperparameters(kwargs, message):

@@ -60,6 +60,30 @@ def test_critic_layer_norm():
     assert len(list(model.critic.parameters())) == len(list(model.critic_target.parameters())) == 2 * 10
 
 
+def test_mean_init_scale(tmp_path):
+    env = make_vec_env("Pendulum-v1", n_envs=4)
+    obs = th.as_tensor(env.reset(), dtype=th.float32)
+    kwargs = dict(net_arch=[16, 16], use_xavier_init=False)
+    th.manual_seed(0)
+    full = CGAC("MlpPolicy", env, policy_kwargs=kwargs)
+    th.manual_seed(0)
+    small = CGAC("MlpPolicy", env, policy_kwargs=dict(**kwargs, mean_init_scale=0.01))
+    # Only the mean layer is scaled (the default init draws a non-zero bias, which is scaled too)
+    th.testing.assert_close(small.policy.actor.mu.weight, 0.01 * full.policy.actor.mu.weight)
+    th.testing.assert_close(small.policy.actor.mu.bias, 0.01 * full.policy.actor.mu.bias)
+    th.testing.assert_close(small.policy.actor.latent_pi[0].weight, full.policy.actor.latent_pi[0].weight)
+    # The averaged actor, which acts, starts as a copy; the untrained deterministic actions are near zero
+    th.testing.assert_close(small.policy.actor_avg.mu.weight, small.policy.actor.mu.weight)
+    mean_full, _ = full.policy.actor_avg.get_action_dist_params(obs)
+    mean_small, _ = small.policy.actor_avg.get_action_dist_params(obs)
+    th.testing.assert_close(mean_small, 0.01 * mean_full)
+    # Saved as a constructor argument: a loaded model rebuilds the same policy
+    small.save(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model")
+    assert loaded.policy.actor.mean_init_scale == 0.01
+    th.testing.assert_close(loaded.policy.actor_avg.mu.weight, small.policy.actor_avg.mu.weight)
+
+
 def test_learning_rate_decay():
     """The authors' schedule: linear from the initial to the final rate over lr_decay_iterations iterations."""
     model = CGAC(

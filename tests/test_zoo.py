@@ -189,3 +189,18 @@ def test_ablations_script_tiny_budget(tmp_path):
     assert "best of cgac's final returns" in table
     for variant in ("cgac", "no_pol_avg", "n_envs_16", "critic_layer_norm"):
         assert f"| {variant} |" in table
+
+
+def test_ablation_variants_merge_policy_kwargs():
+    from sb3_cgac.ablations import entry_variants
+
+    entry = {"n_envs": 64, "batch_size": 2048, "policy_kwargs": "dict(net_arch=[64, 64], mean_init_scale=0.01)"}
+    variants = entry_variants(entry)
+    # The zoo evaluates the string: a variant adds its keys to the entry's and replaces the ones it names
+    assert eval(variants["critic_layer_norm"]["policy_kwargs"]) == dict(
+        net_arch=[64, 64], mean_init_scale=0.01, critic_layer_norm=True
+    )
+    assert eval(variants["full_mean_init"]["policy_kwargs"]) == dict(net_arch=[64, 64], mean_init_scale=1.0)
+    assert eval(entry_variants({"n_envs": 64})["small_mean_init"]["policy_kwargs"]) == dict(mean_init_scale=0.01)
+    # Env-count variants; the entry's batch does not fit in 16 envs x 32 steps, so the smaller one uses the default
+    assert variants["n_envs_16"] == {"n_envs": 16, "batch_size": None} and variants["n_envs_256"] == {"n_envs": 256}
