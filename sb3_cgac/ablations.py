@@ -3,8 +3,8 @@ The paper's ablations (Fig. 3) on a cheap env: number of parallel envs, no polic
 neither, no alpha clamp and the paper's alpha clamp; and this package's stabilisers switched on one at a time:
 first episodes cut at random lengths, the learning-rate decay (to 1e-4 over 4k iterations), LayerNorm critics and
 the actor's initial mean layer scaled by 0.01 (``small_mean_init``) or not (``full_mean_init``).
-Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml`` with one change, run by ``sb3_cgac.compare`` (same
-budget options, CSV, plots and table; times are compared with the full CGAC)::
+Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml`` (or of ``--conf-dir``'s) with one change, run by
+``sb3_cgac.compare`` (same budget options, CSV, plots and table; times are compared with the full CGAC)::
 
     python -m sb3_cgac.ablations --env HalfCheetah-v5 --backend envpool --seeds 2 --minutes 10 --jobs 2
     python -m sb3_cgac.ablations --env Hopper-v5 --steps 2000000 --variants cgac no_pol_avg no_val_avg
@@ -13,7 +13,6 @@ budget options, CSV, plots and table; times are compared with the full CGAC)::
 """
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -61,24 +60,57 @@ def entry_variants(entry: dict[str, Any], n_envs: list[int] | None = None) -> di
     return variants
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter, add_help=False)
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_cgac.ablations",
+        description=__doc__,
+        epilog="Every other option is the comparison's (python -m sb3_cgac.compare --help): the budget (--steps or "
+        "--minutes), --seeds, the evaluation options, --threshold, --backend, --jobs, --threads, --summary-only.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False,  # the comparison's options pass through unabbreviated
+    )
+    parser.add_argument("--env", required=True, help="env id; its cgac entry is the one varied")
     parser.add_argument("--variants", nargs="+", default=None, help=f"subset of {list(VARIANTS)} and n_envs_<N>")
     parser.add_argument("--n-envs", nargs="+", type=int, default=None, help="env counts of the n_envs variants")
-    known, rest = parser.parse_known_args()
-    env_id = rest[rest.index("--env") + 1] if "--env" in rest else None
-    if env_id is None:
-        compare_main(argv=["--help"])
-        return
-    entry = yaml.safe_load((HYPERPARAMS_DIR / "cgac.yml").read_text())[env_id]
+    parser.add_argument("--conf-dir", default=None, help="folder of cgac.yml (default: this package's hyperparams)")
+    parser.add_argument("--out", default=None, help="output folder (default: results/ablations-<env>)")
+    return parser
+
+
+def load_entry(env_id: str, conf_dir: str | None = None) -> dict[str, Any]:
+    """
+    The ``cgac`` entry the variants change: the one the runs read (``--conf-dir``'s file, else the package's).
+
+    :param env_id: Env id
+    :param conf_dir: Folder of ``cgac.yml`` (None: this package's hyperparameters)
+    :return: The entry
+    """
+    path = Path(conf_dir or HYPERPARAMS_DIR) / "cgac.yml"
+    entries = yaml.safe_load(path.read_text()) or {}
+    if env_id not in entries:
+        raise ValueError(
+            f"{path} has no entry for {env_id}: the ablations vary an entry. Add one, or pick one of {sorted(entries)}."
+        )
+    return entries[env_id]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
+    known, rest = parser.parse_known_args(argv)
+    if "--runs" in rest:
+        parser.error("--runs does not apply to the ablations: choose them with --variants")
+    try:
+        entry = load_entry(known.env, known.conf_dir)
+    except ValueError as error:
+        parser.error(str(error))
     variants = entry_variants(entry, known.n_envs)
     chosen = known.variants or list(variants)
     unknown = [name for name in chosen if name not in variants]
     if unknown:
-        sys.exit(f"Unknown variants {unknown}; choose from {list(variants)}.")
+        parser.error(f"unknown variants {unknown}; choose from {list(variants)}")
     runs = {name: {"file": "cgac", "overrides": variants[name]} for name in chosen}
-    if "--out" not in rest:
-        rest += ["--out", str(Path("results") / f"ablations-{env_id}")]
+    rest += ["--env", known.env, "--out", known.out or str(Path("results") / f"ablations-{known.env}")]
+    rest += ["--conf-dir", known.conf_dir] if known.conf_dir else []
     compare_main(runs=runs, argv=rest, references=("cgac",))
 
 

@@ -204,3 +204,23 @@ def test_ablation_variants_merge_policy_kwargs():
     assert eval(entry_variants({"n_envs": 64})["small_mean_init"]["policy_kwargs"]) == dict(mean_init_scale=0.01)
     # Env-count variants; the entry's batch does not fit in 16 envs x 32 steps, so the smaller one uses the default
     assert variants["n_envs_16"] == {"n_envs": 16, "batch_size": None} and variants["n_envs_256"] == {"n_envs": 256}
+
+
+def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys):
+    from sb3_cgac.ablations import load_entry, main
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "--variants" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["--env", "NoSuchEnv-v0", "--steps", "10"])
+    assert "has no entry for NoSuchEnv-v0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--env", "Pendulum-v1", "--steps", "10", "--runs", "ppo"])
+    assert "--variants" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--env", "Pendulum-v1", "--steps", "10", "--variants", "no_such_variant"])
+    assert "unknown variants ['no_such_variant']" in capsys.readouterr().err
+    # The variants change the entry the runs read: --conf-dir's, not the package's
+    (tmp_path / "cgac.yml").write_text("Pendulum-v1:\n  n_envs: 8\n  policy_kwargs: 'dict(net_arch=[16])'\n")
+    assert load_entry("Pendulum-v1", str(tmp_path))["policy_kwargs"] == "dict(net_arch=[16])"
