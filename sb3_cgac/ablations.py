@@ -86,6 +86,8 @@ def load_entry(env_id: str, conf_dir: str | None = None) -> dict[str, Any]:
     :return: The entry
     """
     path = Path(conf_dir or HYPERPARAMS_DIR) / "cgac.yml"
+    if not path.is_file():
+        raise ValueError(f"{path} does not exist: --conf-dir must be a folder holding cgac.yml.")
     entries = yaml.safe_load(path.read_text()) or {}
     if env_id not in entries:
         raise ValueError(
@@ -97,7 +99,7 @@ def load_entry(env_id: str, conf_dir: str | None = None) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     known, rest = parser.parse_known_args(argv)
-    if "--runs" in rest:
+    if any(arg == "--runs" or arg.startswith("--runs=") for arg in rest):
         parser.error("--runs does not apply to the ablations: choose them with --variants")
     try:
         entry = load_entry(known.env, known.conf_dir)

@@ -206,8 +206,9 @@ def test_ablation_variants_merge_policy_kwargs():
     assert variants["n_envs_16"] == {"n_envs": 16, "batch_size": None} and variants["n_envs_256"] == {"n_envs": 256}
 
 
-def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys):
-    from sb3_cgac.ablations import load_entry, main
+def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys, monkeypatch):
+    import sb3_cgac.ablations
+    from sb3_cgac.ablations import main
 
     with pytest.raises(SystemExit):
         main(["--help"])
@@ -221,6 +222,17 @@ def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--env", "Pendulum-v1", "--steps", "10", "--variants", "no_such_variant"])
     assert "unknown variants ['no_such_variant']" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--env", "Pendulum-v1", "--steps", "10", "--conf-dir", str(tmp_path)])
+    assert "must be a folder holding cgac.yml" in capsys.readouterr().err
     # The variants change the entry the runs read: --conf-dir's, not the package's
     (tmp_path / "cgac.yml").write_text("Pendulum-v1:\n  n_envs: 8\n  policy_kwargs: 'dict(net_arch=[16])'\n")
-    assert load_entry("Pendulum-v1", str(tmp_path))["policy_kwargs"] == "dict(net_arch=[16])"
+    calls = []
+    monkeypatch.setattr(sb3_cgac.ablations, "compare_main", lambda **kwargs: calls.append(kwargs))
+    main(["--env=Pendulum-v1", "--steps", "10", "--conf-dir", str(tmp_path), "--variants", "critic_layer_norm"])
+    (call,) = calls
+    overrides = call["runs"]["critic_layer_norm"]["overrides"]
+    assert eval(overrides["policy_kwargs"]) == dict(net_arch=[16], critic_layer_norm=True)
+    argv = call["argv"]
+    assert argv[argv.index("--conf-dir") + 1] == str(tmp_path) and argv[argv.index("--env") + 1] == "Pendulum-v1"
+    assert argv[argv.index("--out") + 1] == str(pathlib.Path("results") / "ablations-Pendulum-v1")
