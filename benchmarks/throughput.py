@@ -247,7 +247,9 @@ def main() -> None:
             for backend in args.backends:
                 name = BACKEND_NAMES[backend]
                 if backend in ("subproc", "gymnasium_async") and n_envs > MAX_PROCESSES:
-                    row = f"| {env_id} | {n_envs} | {name} | skipped: one process per env, > {MAX_PROCESSES} processes |"
+                    # As many cells as the header, so that the table stays rectangular
+                    skipped = f"skipped: one process per env, > {MAX_PROCESSES} processes"
+                    row = f"| {env_id} | {n_envs} | {name} | {skipped} | | | | |"
                     lines.append(row)
                     print(row, flush=True)
                     continue
