@@ -5,15 +5,19 @@ Time to a fixed fraction of the best return against the number of action dimensi
     python -m sb3_cgac.scaling docs/results/Pendulum-v1 docs/results/Hopper-v5 docs/results/myoLegWalk-v0:80 \\
         --out docs/results/scaling
 
-Each argument is a comparison folder named after its env id, with ``:<n>`` for the number of action dimensions
-when the env is not installed here (MyoSuite has its own environment). For each run (``--runs``) and seed, the
-time to a fraction ``f`` of the seed's own best is the training wall-clock of its first evaluation at or above
-``first + f * (best - first)``, ``first`` being the evaluation before training (so negative returns work); the
-median over seeds is plotted against the action dimensions, and tabulated. A seed that never improves counts as
-not reaching it.
+Each argument is a comparison folder named after its env id (``Ant-v5``, or ``Ant-v5-<anything>`` for a variant),
+with ``:<n>`` for the number of action dimensions when the env is not installed here (MyoSuite has its own
+environment). Folders of one env joined by ``+`` (``docs/results/Ant-v5-no-policy-averaging+docs/results/Ant-v5``)
+take each run from the first folder that has it: a new CGAC entry beside the PPO runs of an older comparison.
+
+For each run (``--runs``) and seed, the time to a fraction ``f`` of the seed's own best is the training wall-clock
+of its first evaluation at or above ``first + f * (best - first)``, ``first`` being the evaluation before training
+(so negative returns work); the median over seeds is plotted against the action dimensions, and tabulated. A seed
+that never improves counts as not reaching it.
 """
 
 import argparse
+import re
 from pathlib import Path
 from typing import Any
 
@@ -49,16 +53,38 @@ def time_to_fraction(frame: Any, fraction: float) -> float:
     return float(reached["seconds"].min()) if len(reached) else float("inf")
 
 
-def scaling_table(folders: list[str], runs: list[str], fraction: float) -> list[dict[str, Any]]:
-    """One row per (env, run): env id, action dimensions, seeds, median seconds to the fraction."""
+def env_id_of(folder: str) -> str:
+    """The env id a comparison folder is named after: its name up to the version suffix (``Ant-v5-no-x`` -> ``Ant-v5``)."""
+    match = re.match(r"(.+?-v\d+)(-|$)", Path(folder).name)
+    if match is None:
+        raise ValueError(f"{folder} is not named after an env id (such as Ant-v5 or Ant-v5-<variant>): rename it.")
+    return match.group(1)
+
+
+def read_evaluations(argument: str) -> tuple[str, Any]:
+    """Env id and evaluations of ``<folder>[+<folder>...]``: each run from the first folder that has it."""
     import pandas as pd
 
+    folders = argument.split("+")
+    env_ids = {env_id_of(folder) for folder in folders}
+    if len(env_ids) != 1:
+        raise ValueError(f"{argument} joins folders of different envs ({', '.join(sorted(env_ids))}): join one env's only.")
+    frames: list[Any] = []
+    runs_seen: set[str] = set()
+    for folder in folders:
+        results = pd.read_csv(Path(folder) / "evaluations.csv")
+        frames.append(results[~results["run"].isin(runs_seen)])
+        runs_seen |= set(results["run"])
+    return env_ids.pop(), pd.concat(frames, ignore_index=True)
+
+
+def scaling_table(folders: list[str], runs: list[str], fraction: float) -> list[dict[str, Any]]:
+    """One row per (env, run): env id, action dimensions, seeds, median seconds to the fraction."""
     rows = []
     for argument in folders:
-        folder, _, dims_text = argument.partition(":")
-        env_id = Path(folder).name
+        joined, _, dims_text = argument.partition(":")
+        env_id, results = read_evaluations(joined)
         dims = int(dims_text) if dims_text else action_dims(env_id)
-        results = pd.read_csv(Path(folder) / "evaluations.csv")
         for run in runs:
             seeds = [frame for _, frame in results[results["run"] == run].groupby("seed")]
             if not seeds:
@@ -84,7 +110,9 @@ def plot_scaling(rows: list[dict[str, Any]], runs: list[str], fraction: float, p
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folders", nargs="+", help="comparison folders named after their env id, optionally <folder>:<dims>")
+    parser.add_argument(
+        "folders", nargs="+", help="comparison folders named after their env id: <folder>[+<folder>...][:<dims>]"
+    )
     parser.add_argument("--runs", nargs="+", default=["cgac", "ppo"], help="runs to compare")
     parser.add_argument("--fraction", type=float, default=0.8, help="fraction of each seed's best improvement")
     parser.add_argument("--out", default="results/scaling", help="output stem: <out>.png and <out>.md")

@@ -44,6 +44,25 @@ def test_scaling_table_and_plot(tmp_path):
         main([str(tmp_path / "NotInstalled-v0"), "--out", str(tmp_path / "other")])
 
 
+def test_joined_folders(tmp_path):
+    # A new CGAC entry (a variant folder with CGAC only) beside the PPO runs of an older comparison of the same env
+    for name, rows in {
+        "Pendulum-v1-new-entry": evaluations("cgac", 0, [0, 10, 10]),
+        "Pendulum-v1": evaluations("cgac", 0, [0, 0, 10]) + evaluations("ppo", 0, [0, 0, 0, 10]),
+    }.items():
+        (tmp_path / name).mkdir()
+        pd.DataFrame(rows).to_csv(tmp_path / name / "evaluations.csv", index=False)
+    joined = f"{tmp_path / 'Pendulum-v1-new-entry'}+{tmp_path / 'Pendulum-v1'}"
+    table = main([joined, "--out", str(tmp_path / "scaling")])
+    # CGAC from the first folder (1 minute, not the older folder's 2), PPO from the second
+    assert table.splitlines()[4] == "| Pendulum-v1 | 1 | 1.0 (1 seed) | 3.0 (1 seed) |"
+    (tmp_path / "Hopper-v5").mkdir()
+    with pytest.raises(ValueError, match="different envs"):
+        main([f"{tmp_path / 'Pendulum-v1'}+{tmp_path / 'Hopper-v5'}", "--out", str(tmp_path / "other")])
+    with pytest.raises(ValueError, match="not named after an env id"):
+        main([str(tmp_path / "scaling"), "--out", str(tmp_path / "other")])
+
+
 def test_fraction_is_checked(tmp_path):
     with pytest.raises(ValueError, match="--fraction"):
         main([str(tmp_path), "--fraction", "1.5"])
