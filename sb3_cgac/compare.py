@@ -20,6 +20,8 @@ and the entries' ``n_timesteps`` do not stop a run early). Evaluations are deter
 bootstrap band over seeds; the IQM with rliable from 3 seeds on) and ``summary.md`` (final and best return,
 steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's). ``--success-key success``
 adds each evaluation's success rate (the info key at each episode's last step, e.g. Adroit's ``success``).
+Beside each pair's evaluations, ``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the
+model's logger at each evaluation (CGAC: alpha as ``ent_coef``, ``entropy``, the losses...).
 """
 
 import argparse
@@ -40,6 +42,19 @@ def run_paths(out: Path, run: str, seed: int) -> tuple[Path, Path, Path]:
     """Evaluations, completion record and log of one (run, seed) pair."""
     stem = out / "runs" / f"{run}_seed{seed}"
     return stem.with_suffix(".csv"), stem.with_suffix(".json"), stem.with_suffix(".log")
+
+
+def train_stats_path(out: Path, run: str, seed: int) -> Path:
+    """The training statistics (the logger's ``train/*`` values) at each evaluation of one (run, seed) pair."""
+    csv_path = run_paths(out, run, seed)[0]
+    return csv_path.with_name(f"{csv_path.stem}_train.csv")
+
+
+def write_csv_atomically(path: Path, text: str) -> None:
+    # The parent process reads the evaluations to show progress: it never sees a half-written file
+    partial = path.with_suffix(".tmp")
+    partial.write_text(text)
+    partial.replace(path)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -74,6 +89,7 @@ def train_one(args: argparse.Namespace) -> None:
         )
         eval_env = manager.create_envs(args.eval_envs, eval_env=True)
     rows: list[str] = []
+    train_rows: list[dict[str, str]] = []
 
     class EvaluateWithinBudget(BaseCallback):
         """Evaluates on a schedule and stops at the budget; the budget's clock stops during evaluations."""
@@ -104,11 +120,22 @@ def train_one(args: argparse.Namespace) -> None:
             )
             row = f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}"
             rows.append(row + (f",{np.mean(successes) if successes else 0.0:.3f}\n" if args.success_key else "\n"))
-            # Atomic replace: the parent process reads this file to show progress
-            partial = csv_path.with_suffix(".tmp")
-            partial.write_text(",".join(COLUMNS + (["success_rate"] if args.success_key else [])) + "\n" + "".join(rows))
-            partial.replace(csv_path)
+            header = ",".join(COLUMNS + (["success_rate"] if args.success_key else []))
+            write_csv_atomically(csv_path, header + "\n" + "".join(rows))
+            self.record_train_stats()
             self.resumed = time.perf_counter()
+
+        def record_train_stats(self) -> None:
+            # The latest update's statistics (alpha, entropy, losses...) beside each evaluation, to explain a
+            # collapse without rerunning; empty before the first update (and right after a logger dump, for SAC)
+            stats = {}
+            for key, value in self.model.logger.name_to_value.items():
+                if key.startswith("train/") and isinstance(value, int | float | np.number):
+                    stats[key.removeprefix("train/")] = f"{float(value):.6g}"
+            train_rows.append({"steps": str(self.num_timesteps), "seconds": f"{self.seconds:.2f}", **stats})
+            keys = list(dict.fromkeys(key for row in train_rows for key in row))
+            lines = [",".join(keys)] + [",".join(row.get(key, "") for key in keys) for row in train_rows]
+            write_csv_atomically(train_stats_path(Path(args.out), args.run, args.seed), "\n".join(lines) + "\n")
 
         def _on_step(self) -> bool:
             if args.minutes and self.clock() >= args.minutes * 60:

@@ -1,5 +1,6 @@
 """The rl_zoo3 integration, driven through the real rl_zoo3 code."""
 
+import csv
 import pathlib
 import subprocess
 import sys
@@ -150,6 +151,8 @@ def test_compare_script_tiny_budget(tmp_path):
     table = (out / "summary.md").read_text()
     assert "best of ppo's final returns" in table
     assert [line.split(" | ")[0] for line in table.splitlines()[4:]] == ["| cgac", "| ppo", "| sac"]
+    for run in ("cgac", "ppo", "sac"):
+        assert (out / "runs" / f"{run}_seed0_train.csv").exists(), run
     # Finished pairs are skipped when the command runs again
     again = subprocess.run(
         [sys.executable, "-m", "sb3_cgac.compare", "--env", "Pendulum-v1", "--seeds", "1", "--steps", "1000",
@@ -157,6 +160,25 @@ def test_compare_script_tiny_budget(tmp_path):
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert again.returncode == 0 and "3 of 3 (run, seed) pairs already done" in again.stdout
+
+
+def test_compare_records_train_stats(tmp_path):
+    """Each evaluation's row of runs/<run>_seed<k>_train.csv holds the latest train/* values: none before training."""
+    out = tmp_path / "cmp"
+    # 3000 steps: the Pendulum-v1 entry's updates start once its window holds 2048 transitions
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_cgac.compare", "--env", "Pendulum-v1", "--runs", "cgac", "--seeds", "1",
+         "--steps", "3000", "--eval-every", "0.5", "--eval-episodes", "2", "--eval-envs", "2", "--out", str(out)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    evaluations = list(csv.DictReader((out / "runs" / "cgac_seed0.csv").open()))
+    stats = list(csv.DictReader((out / "runs" / "cgac_seed0_train.csv").open()))
+    assert [row["steps"] for row in stats] == [row["steps"] for row in evaluations]
+    assert [row["seconds"] for row in stats] == [row["seconds"] for row in evaluations]
+    assert stats[0]["ent_coef"] == "" and stats[0]["entropy"] == ""
+    assert float(stats[-1]["ent_coef"]) > 0 and np.isfinite(float(stats[-1]["entropy"]))
+    assert int(stats[-1]["n_updates"]) > 0
 
 
 def test_compare_success_rate(tmp_path):
