@@ -103,6 +103,7 @@ def train_one(args: argparse.Namespace) -> None:
 
         def evaluate(self) -> None:
             self.seconds = self.clock()
+            self.evaluated_at = self.num_timesteps
             if args.minutes:
                 self.next_evaluation = self.seconds + args.eval_every * 60
             else:
@@ -145,7 +146,9 @@ def train_one(args: argparse.Namespace) -> None:
             return True
 
         def _on_training_end(self) -> None:
-            self.evaluate()
+            # A step budget can end right on a scheduled evaluation: one row per step count
+            if self.num_timesteps != self.evaluated_at:
+                self.evaluate()
 
     evaluator = EvaluateWithinBudget()
     # With a time budget, training runs until the clock is out, whatever the entry's n_timesteps; schedules that

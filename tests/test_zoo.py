@@ -165,16 +165,19 @@ def test_compare_script_tiny_budget(tmp_path):
 def test_compare_records_train_stats(tmp_path):
     """Each evaluation's row of runs/<run>_seed<k>_train.csv holds the latest train/* values: none before training."""
     out = tmp_path / "cmp"
-    # 3000 steps: the Pendulum-v1 entry's updates start once its window holds 2048 transitions
+    # The Pendulum-v1 entry's updates start once its window holds 2048 transitions; with its 64 envs, 2560 steps end
+    # right on the evaluation scheduled every 1280 steps
     result = subprocess.run(
         [sys.executable, "-m", "sb3_cgac.compare", "--env", "Pendulum-v1", "--runs", "cgac", "--seeds", "1",
-         "--steps", "3000", "--eval-every", "0.5", "--eval-episodes", "2", "--eval-envs", "2", "--out", str(out)],
+         "--steps", "2560", "--eval-every", "0.5", "--eval-episodes", "2", "--eval-envs", "2", "--out", str(out)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     evaluations = list(csv.DictReader((out / "runs" / "cgac_seed0.csv").open()))
     stats = list(csv.DictReader((out / "runs" / "cgac_seed0_train.csv").open()))
     assert [row["steps"] for row in stats] == [row["steps"] for row in evaluations]
+    # The evaluation the budget ends on is not repeated at the end of training
+    assert [int(row["steps"]) for row in evaluations] == [0, 1280, 2560]
     assert [row["seconds"] for row in stats] == [row["seconds"] for row in evaluations]
     assert stats[0]["ent_coef"] == "" and stats[0]["entropy"] == ""
     assert float(stats[-1]["ent_coef"]) > 0 and np.isfinite(float(stats[-1]["entropy"]))
