@@ -146,9 +146,12 @@ def train_one(args: argparse.Namespace) -> None:
             return True
 
         def _on_training_end(self) -> None:
-            # A step budget can end right on a scheduled evaluation: one row per step count
-            if self.num_timesteps != self.evaluated_at:
-                self.evaluate()
+            # A step budget can end right on a scheduled evaluation, made before the rollout's last update: the final
+            # model's evaluation replaces it, so that the last row is the trained model and each step count has one row
+            if self.num_timesteps == self.evaluated_at:
+                rows.pop()
+                train_rows.pop()
+            self.evaluate()
 
     evaluator = EvaluateWithinBudget()
     # With a time budget, training runs until the clock is out, whatever the entry's n_timesteps; schedules that
