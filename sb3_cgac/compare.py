@@ -103,7 +103,6 @@ def train_one(args: argparse.Namespace) -> None:
 
         def evaluate(self) -> None:
             self.seconds = self.clock()
-            self.evaluated_at = self.num_timesteps
             if args.minutes:
                 self.next_evaluation = self.seconds + args.eval_every * 60
             else:
@@ -141,16 +140,13 @@ def train_one(args: argparse.Namespace) -> None:
         def _on_step(self) -> bool:
             if args.minutes and self.clock() >= args.minutes * 60:
                 return False
+            if args.steps and self.num_timesteps >= args.steps:
+                return True  # the step budget's last rollout: the end of training evaluates the final model
             if (self.clock() if args.minutes else self.num_timesteps) >= self.next_evaluation:
                 self.evaluate()
             return True
 
         def _on_training_end(self) -> None:
-            # A step budget can end right on a scheduled evaluation, made before the rollout's last update: the final
-            # model's evaluation replaces it, so that the last row is the trained model and each step count has one row
-            if self.num_timesteps == self.evaluated_at:
-                rows.pop()
-                train_rows.pop()
             self.evaluate()
 
     evaluator = EvaluateWithinBudget()

@@ -176,7 +176,7 @@ def test_compare_records_train_stats(tmp_path):
     evaluations = list(csv.DictReader((out / "runs" / "cgac_seed0.csv").open()))
     stats = list(csv.DictReader((out / "runs" / "cgac_seed0_train.csv").open()))
     assert [row["steps"] for row in stats] == [row["steps"] for row in evaluations]
-    # The evaluation the budget ends on is replaced by the final model's, not repeated
+    # The evaluation scheduled at the step the budget ends on is left to the end of training: one row, the final model
     assert [int(row["steps"]) for row in evaluations] == [0, 1280, 2560]
     assert [row["seconds"] for row in stats] == [row["seconds"] for row in evaluations]
     assert stats[0]["ent_coef"] == "" and stats[0]["entropy"] == ""
