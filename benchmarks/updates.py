@@ -37,7 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 OBS_DIM, ACTION_DIM = 17, 6  # HalfCheetah-v5's spaces
 N_ENVS, WINDOW = 128, 32  # a full window holds 4096 transitions
 PATHS: dict[str, dict[str, Any]] = {
-    "default": {},
+    "default": {},  # the package's defaults, or with --e2e the entry as it is
+    "float32": {"update_precision": "float32"},
     "compile": {"compile_updates": True},
     "bf16": {"update_precision": "bfloat16"},
     "compile+bf16": {"compile_updates": True, "update_precision": "bfloat16"},
@@ -298,10 +299,11 @@ def main() -> None:
         f"Machine: {machine(args.threads, args.device)}, "
         + ("the entries' own networks\n" if args.e2e else f"{args.activation} networks, actor {args.actor}\n")
     )
+    first = f"CGAC {args.paths[0]}"  # the ratios' reference among CGAC's paths
     if args.e2e:
-        print("| env | candidate | steps/s | speed / CGAC default's | speed / previous's |\n| --- | --- | --- | --- | --- |")
+        print(f"| env | candidate | steps/s | speed / {first}'s | speed / previous's |\n| --- | --- | --- | --- | --- |")
     else:
-        print("| batch | critic | candidate | ms / step | vs SAC | vs CGAC default | vs previous | GFLOP/s |")
+        print(f"| batch | critic | candidate | ms / step | vs SAC | vs {first} | vs previous | GFLOP/s |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as directory:
         baseline = baseline_worktree(args.baseline, os.path.join(directory, "baseline")) if args.baseline else None

@@ -4,12 +4,12 @@ from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, observations_to_ten
 from sb3_cgac.callbacks import ENTROPY_SCHEDULES, EntropyScheduleCallback, with_entropy_schedule
 from sb3_cgac.hyperparameters import (
     FEW_ENVS,
-    UPDATE_PRECISIONS,
     check_action_space,
     check_hyperparameters,
     decayed_learning_rate,
     parse_ent_coef,
     resolve_batch_size,
+    resolve_update_precision,
     scaled_polyak_rates,
     warn_few_envs,
 )
@@ -93,7 +93,9 @@ class CGAC(OnPolicyAlgorithm):
     :param compile_updates: ``torch.compile`` the critic and actor losses: True, or a dict of its keyword arguments
         (a C++ compiler is needed on CPU; the outlier-clipped actor loss stays uncompiled)
     :param update_precision: ``"float32"``, or ``"bfloat16"``: the update's networks under bfloat16 autocast (CUDA,
-        or CPUs with AVX512-BF16 or AMX); losses, optimizers, collection and the outlier-clipped actor loss stay float32
+        or CPUs with AVX512-BF16 or AMX; losses, optimizers, collection and the outlier-clipped actor loss stay
+        float32), or ``"auto"``: bfloat16 on CPUs that have it in hardware, float32 elsewhere (other CPUs emulate
+        bfloat16; CUDA was not measured), resolved again when a saved model is loaded
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -271,7 +273,9 @@ class CGAC(OnPolicyAlgorithm):
         self.gradient_ratio_average = th.tensor(100.0, device=self.device)
 
     def _setup_update_functions(self) -> None:
-        self._autocast_dtype = UPDATE_PRECISIONS[self.update_precision]
+        self._autocast_dtype = resolve_update_precision(self.update_precision, self.device)
+        if self.verbose >= 1 and self.update_precision == "auto":
+            print(f"update_precision='auto': updates in {'bfloat16' if self._autocast_dtype else 'float32'}")
         self._critic_loss_fn, self._actor_loss_fn = critic_loss, actor_loss
         if self.compile_updates:
             compile_kwargs = self.compile_updates if isinstance(self.compile_updates, dict) else {}

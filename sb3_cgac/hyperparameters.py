@@ -20,8 +20,8 @@ PAPER_TRANSITIONS_PER_ACTOR_UPDATE = 4096
 FEW_ENVS = 16
 # Clamps of the learned entropy coefficient (see CGAC's ``ent_coef_monotone``)
 ENT_COEF_CLAMPS = (True, False, "above_target")
-# Precision of the networks in the updates: None runs them as they are (float32)
-UPDATE_PRECISIONS: dict[str, th.dtype | None] = {"float32": None, "bfloat16": th.bfloat16}
+# Precision of the networks in the updates ("auto": see ``resolve_update_precision``)
+UPDATE_PRECISIONS = ("auto", "float32", "bfloat16")
 # Regression losses of the critics (see ``sb3_cgac.losses.q_regression_loss``)
 CRITIC_LOSSES = ("huber", "mse")
 
@@ -111,11 +111,34 @@ def check_hyperparameters(
     if entropy_schedule is None and entropy_schedule_kwargs:
         raise ValueError("CGAC: entropy_schedule_kwargs is given but entropy_schedule is None; set entropy_schedule.")
     check_choice("critic_loss", critic_loss, CRITIC_LOSSES)
-    check_choice("update_precision", update_precision, tuple(UPDATE_PRECISIONS))
+    check_choice("update_precision", update_precision, UPDATE_PRECISIONS)
     if not isinstance(compile_updates, (bool, dict)):
         raise ValueError(
             f"CGAC: compile_updates must be True, False or a dict of torch.compile keyword arguments, got {compile_updates!r}."
         )
+
+
+def native_bfloat16(device: th.device) -> bool:
+    """
+    Whether ``device`` is a CPU that multiplies bfloat16 matrices in hardware (AVX512-BF16 or AMX). Other CPUs
+    emulate bfloat16, which is slower than float32; CUDA is left out because bfloat16 updates were not measured there.
+    """
+    if device.type != "cpu":
+        return False
+    try:  # private helpers of torch.cpu: a torch without them counts as no native bfloat16
+        return bool(th.cpu._is_avx512_bf16_supported() or th.cpu._is_amx_tile_supported())
+    except AttributeError:
+        return False
+
+
+def resolve_update_precision(update_precision: str, device: th.device) -> th.dtype | None:
+    """
+    The autocast dtype of the updates' networks: None for float32. ``"auto"`` takes bfloat16 where it is native
+    (``native_bfloat16``), so that one configuration runs fast on such CPUs and in float32 elsewhere.
+    """
+    if update_precision == "bfloat16" or (update_precision == "auto" and native_bfloat16(device)):
+        return th.bfloat16
+    return None
 
 
 def check_choice(name: str, value: Any, choices: tuple[Any, ...], hint: str = "") -> None:

@@ -70,7 +70,7 @@ def test_unbounded_box():
         (dict(gae_horizon=0), "gae_horizon must be an integer >= 1"),
         (dict(gamma=1.5), "gamma and gae_lambda must be in"),
         (dict(max_grad_norm=0.0), "max_grad_norm must be > 0"),
-        (dict(update_precision="float16"), r"unknown update_precision 'float16'; choose one of \('float32', 'bfloat16'\)"),
+        (dict(update_precision="float16"), r"update_precision 'float16'; choose one of \('auto', 'float32', 'bfloat16'\)"),
         (dict(compile_updates="yes"), "compile_updates must be True, False or a dict"),
         (dict(policy_kwargs=dict(mean_init_scale=-0.01)), "mean_init_scale must be a finite number >= 0"),
         (dict(policy_kwargs=dict(mean_init_scale=float("nan"))), "mean_init_scale must be a finite number >= 0"),

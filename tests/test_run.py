@@ -36,6 +36,7 @@ def make_env(n_envs: int = 4, env_id: str = "Pendulum-v1", **kwargs):
         dict(policy_kwargs=dict(net_arch=[16], optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(weight_decay=0.01))),
         dict(ent_coef_monotone=True, final_learning_rate=1e-4, lr_decay_iterations=50),
         dict(update_precision="bfloat16", clip_actor_gradient_outliers=True),
+        dict(update_precision="auto"),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_kwargs=dict(foreach=True))),
     ],
 )

@@ -1,6 +1,7 @@
 """The update step's paths: the default float32 path, bfloat16 autocast and torch.compile give the same updates."""
 
 from sb3_cgac import CGAC
+from sb3_cgac.hyperparameters import resolve_update_precision
 from sb3_cgac.losses import q_regression_loss
 
 import pytest
@@ -41,6 +42,31 @@ def test_bfloat16_updates_match_float32():
     for key, value in losses.items():
         # bfloat16 keeps 8 bits of mantissa: about 2-3 significant digits
         assert losses_bf16[key].item() == pytest.approx(value.item(), rel=0.05, abs=0.05), key
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_auto_precision_follows_the_cpu(native, monkeypatch, tmp_path):
+    # "auto" is bfloat16 exactly where the CPU multiplies bfloat16 in hardware, and is resolved again at load time
+    monkeypatch.setattr(th.cpu, "_is_avx512_bf16_supported", lambda: native)
+    monkeypatch.setattr(th.cpu, "_is_amx_tile_supported", lambda: False)
+    expected = th.bfloat16 if native else None
+    env = make_vec_env("Pendulum-v1", n_envs=16)
+    model = CGAC("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]), update_precision="auto")
+    assert model._autocast_dtype is expected
+    assert CGAC("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]))._autocast_dtype is None  # the default: float32
+    assert resolve_update_precision("float32", th.device("cpu")) is None
+    assert resolve_update_precision("bfloat16", th.device("cpu")) is th.bfloat16
+    assert resolve_update_precision("auto", th.device("cuda")) is None  # not measured on CUDA: float32
+    model.save(tmp_path / "model")
+    monkeypatch.setattr(th.cpu, "_is_avx512_bf16_supported", lambda: not native)
+    loaded = CGAC.load(tmp_path / "model")
+    assert loaded.update_precision == "auto" and loaded._autocast_dtype is (None if native else th.bfloat16)
+
+
+def test_auto_precision_without_torch_helpers(monkeypatch):
+    # torch.cpu's helpers are private: a torch without them gets float32
+    monkeypatch.delattr(th.cpu, "_is_avx512_bf16_supported")
+    assert resolve_update_precision("auto", th.device("cpu")) is None
 
 
 def test_compiled_updates_match_eager():
