@@ -1,5 +1,6 @@
 """CGAC's twin (n) Q critics: SB3's ``ContinuousCritic``, optionally with LayerNorm, optionally stacked into one network."""
 
+from collections.abc import Callable
 from typing import Any
 
 import torch as th
@@ -9,6 +10,22 @@ from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
+
+
+def output_layer_in_float32(linear: Callable[[th.Tensor], th.Tensor], x: th.Tensor) -> th.Tensor:
+    """
+    Apply a critic's output layer in float32 even under autocast. Q-values are sums of rewards (hundreds or thousands),
+    and bfloat16 keeps 8 bits of mantissa: rounded to bfloat16 they would move in steps larger than the TD errors
+    the critic has to fit (a Q of 500 has a resolution of 2). The hidden layers stay in the autocast dtype.
+
+    :param linear: The output layer (called with its input)
+    :param x: Its input (possibly in the autocast dtype)
+    :return: Its output in float32 (unchanged without autocast)
+    """
+    if not th.is_autocast_enabled(x.device.type):
+        return linear(x)
+    with th.autocast(x.device.type, enabled=False):
+        return linear(x.float())
 
 
 def xavier_init(module: nn.Module) -> None:
@@ -55,10 +72,14 @@ class StackedMlp(nn.Module):
         n, width, in_dim = self.weights[0].shape
         h = F.linear(x, self.weights[0].reshape(n * width, in_dim), self.biases[0].reshape(n * width))
         h = h.view(x.shape[0], n, width).transpose(0, 1)
+        last = len(self.weights) - 1
         for layer in range(1, len(self.weights)):
             if len(self.norm_weights) > 0:
                 h = F.layer_norm(h, (h.shape[-1],)) * self.norm_weights[layer - 1] + self.norm_biases[layer - 1]
-            h = th.baddbmm(self.biases[layer], self.activation(h), self.weights[layer].transpose(1, 2))
+            bias, weight = self.biases[layer], self.weights[layer].transpose(1, 2)
+            if layer == last:
+                return output_layer_in_float32(lambda x: th.baddbmm(bias, x, weight), self.activation(h))
+            h = th.baddbmm(bias, self.activation(h), weight)
         return h
 
 
@@ -157,11 +178,12 @@ class CGACCritic(ContinuousCritic):
         :param actions: Squashed actions, shape (B, action_dim)
         :return: The Q-values of every critic, shape (n_critics, B)
         """
-        if self.q_stack is None:
-            return th.stack([q_value.squeeze(-1) for q_value in super().forward(obs, actions)])  # type: ignore[arg-type]
         with th.set_grad_enabled(th.is_grad_enabled() and not self.share_features_extractor):
             features = self.extract_features(obs, self.features_extractor)
-        return self.q_stack(th.cat([features, actions], dim=1)).squeeze(-1)
+        q_input = th.cat([features, actions], dim=1)
+        if self.q_stack is not None:
+            return self.q_stack(q_input).squeeze(-1)
+        return th.stack([output_layer_in_float32(q_net[-1], q_net[:-1](q_input)).squeeze(-1) for q_net in self.q_networks])
 
     def set_q_requires_grad(self, requires_grad: bool) -> None:
         """
