@@ -93,9 +93,9 @@ class CGAC(OnPolicyAlgorithm):
     :param compile_updates: ``torch.compile`` the critic and actor losses: True, or a dict of its keyword arguments
         (a C++ compiler is needed on CPU; the outlier-clipped actor loss stays uncompiled)
     :param update_precision: ``"float32"``, or ``"bfloat16"``: the update's networks under bfloat16 autocast (CUDA,
-        or CPUs with AVX512-BF16 or AMX; losses, optimizers, collection and the outlier-clipped actor loss stay
-        float32), or ``"auto"``: bfloat16 on CPUs that have it in hardware, float32 elsewhere (other CPUs emulate
-        bfloat16; CUDA was not measured), resolved again when a saved model is loaded
+        or CPUs with AVX512-BF16 or AMX; the critics' output layer, losses, optimizers, collection and the
+        outlier-clipped actor loss stay float32), or ``"auto"``: bfloat16 on CPUs that have it in hardware, float32
+        elsewhere (other CPUs emulate bfloat16; CUDA was not measured), resolved again when a saved model is loaded
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average

@@ -1,6 +1,7 @@
 """CGAC's twin (n) Q critics: SB3's ``ContinuousCritic``, optionally with LayerNorm, optionally stacked into one network."""
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import torch as th
@@ -26,6 +27,16 @@ def output_layer_in_float32(linear: Callable[[th.Tensor], th.Tensor], x: th.Tens
         return linear(x)
     with th.autocast(x.device.type, enabled=False):
         return linear(x.float())
+
+
+def batched_linear(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
+    """
+    :param x: Inputs of every network, shape (n, batch, in)
+    :param weight: Stacked weights, shape (n, out, in)
+    :param bias: Stacked biases, shape (n, 1, out)
+    :return: Outputs, shape (n, batch, out)
+    """
+    return th.baddbmm(bias, x, weight.transpose(1, 2))
 
 
 def xavier_init(module: nn.Module) -> None:
@@ -76,10 +87,8 @@ class StackedMlp(nn.Module):
         for layer in range(1, len(self.weights)):
             if len(self.norm_weights) > 0:
                 h = F.layer_norm(h, (h.shape[-1],)) * self.norm_weights[layer - 1] + self.norm_biases[layer - 1]
-            bias, weight = self.biases[layer], self.weights[layer].transpose(1, 2)
-            if layer == last:
-                return output_layer_in_float32(lambda x: th.baddbmm(bias, x, weight), self.activation(h))
-            h = th.baddbmm(bias, self.activation(h), weight)
+            linear = partial(batched_linear, weight=self.weights[layer], bias=self.biases[layer])
+            h = output_layer_in_float32(linear, self.activation(h)) if layer == last else linear(self.activation(h))
         return h
 
 
@@ -183,7 +192,11 @@ class CGACCritic(ContinuousCritic):
         q_input = th.cat([features, actions], dim=1)
         if self.q_stack is not None:
             return self.q_stack(q_input).squeeze(-1)
-        return th.stack([output_layer_in_float32(q_net[-1], q_net[:-1](q_input)).squeeze(-1) for q_net in self.q_networks])
+        q_values = []
+        for q_net in self.q_networks:
+            assert isinstance(q_net, nn.Sequential)
+            q_values.append(output_layer_in_float32(q_net[-1], q_net[:-1](q_input)).squeeze(-1))
+        return th.stack(q_values)
 
     def set_q_requires_grad(self, requires_grad: bool) -> None:
         """

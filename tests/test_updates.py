@@ -44,6 +44,26 @@ def test_bfloat16_updates_match_float32():
         assert losses_bf16[key].item() == pytest.approx(value.item(), rel=0.05, abs=0.05), key
 
 
+@pytest.mark.parametrize("stacked", [True, False])
+def test_bfloat16_keeps_q_values_in_float32(stacked):
+    # Under bfloat16 autocast the critics' hidden layers run in bfloat16, their output layer in float32: Q-values of
+    # hundreds keep their fractional part (bfloat16 alone would round 500.3 to 500)
+    policy_kwargs = dict(net_arch=[32, 32], stack_critics=stacked)
+    critic = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16), policy_kwargs=policy_kwargs).critic
+    with th.no_grad():
+        for param in critic.parameters():
+            param.mul_(0.01)
+        last_bias = critic.q_stack.biases[-1] if stacked else critic.q_networks[0][-1].bias
+        last_bias.add_(500.3)
+    obs, actions = th.randn(8, 3), th.rand(8, 1) * 2 - 1
+    q_values = critic.q_values(obs, actions)
+    with th.autocast("cpu", dtype=th.bfloat16):
+        q_values_bf16 = critic.q_values(obs, actions)
+    assert q_values_bf16.dtype == th.float32
+    th.testing.assert_close(q_values_bf16[0], q_values[0], rtol=0, atol=0.02)
+    assert (q_values_bf16[0] - 500).abs().min() > 0.2
+
+
 @pytest.mark.parametrize("native", [True, False])
 def test_auto_precision_follows_the_cpu(native, monkeypatch, tmp_path):
     # "auto" is bfloat16 exactly where the CPU multiplies bfloat16 in hardware, and is resolved again at load time
