@@ -87,8 +87,10 @@ class StackedMlp(nn.Module):
         for layer in range(1, len(self.weights)):
             if len(self.norm_weights) > 0:
                 h = F.layer_norm(h, (h.shape[-1],)) * self.norm_weights[layer - 1] + self.norm_biases[layer - 1]
-            linear = partial(batched_linear, weight=self.weights[layer], bias=self.biases[layer])
-            h = output_layer_in_float32(linear, self.activation(h)) if layer == last else linear(self.activation(h))
+            h = self.activation(h)
+            if layer == last:
+                return output_layer_in_float32(partial(batched_linear, weight=self.weights[layer], bias=self.biases[layer]), h)
+            h = batched_linear(h, self.weights[layer], self.biases[layer])
         return h
 
 
