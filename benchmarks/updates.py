@@ -4,6 +4,7 @@ Time per gradient step of CGAC against SB3 SAC on the same networks and batch, m
     python benchmarks/updates.py                                     # the full table (a few minutes on 2 cores)
     python benchmarks/updates.py --batch-sizes 512 --critics 256,256 --paths default bf16
     python benchmarks/updates.py --baseline 179b5ab                  # also CGAC as it was at that git revision
+    python benchmarks/updates.py --paths bf16 --baseline 3ad9cec --baseline-path bf16   # one path, old against new
     python benchmarks/updates.py --e2e Pendulum-v1 HalfCheetah-v5 --baseline 179b5ab   # end to end, zoo entries
 
 A gradient step is one critic and one actor update with their Polyak updates: CGAC's ``train()`` with
@@ -214,6 +215,12 @@ def baseline_worktree(revision: str, directory: str) -> str:
     return directory
 
 
+def baseline_candidate(args: argparse.Namespace, common: list[str], baseline: str) -> Candidate:
+    """CGAC imported from the ``--baseline`` worktree, on its ``--baseline-path`` update path."""
+    name = f"CGAC at {args.baseline}" + ("" if args.baseline_path == "default" else f" {args.baseline_path}")
+    return Candidate(name, "cgac", [*common, "--path", args.baseline_path], pythonpath=baseline)
+
+
 def measure(args: argparse.Namespace, batch: int, critic: list[int], baseline: str | None) -> list[str]:
     common = ["--batch", str(batch), "--critic", *map(str, critic), "--actor", *map(str, args.actor),
               "--threads", str(args.threads), "--device", args.device, "--activation", args.activation,
@@ -221,7 +228,7 @@ def measure(args: argparse.Namespace, batch: int, critic: list[int], baseline: s
     candidates = [Candidate(f"CGAC {path}", "cgac", [*common, "--path", path]) for path in args.paths]
     candidates.append(Candidate("SB3 SAC", "sac", common))
     if baseline is not None:
-        candidates.append(Candidate(f"CGAC at {args.baseline}", "cgac", [*common, "--path", "default"], pythonpath=baseline))
+        candidates.append(baseline_candidate(args, common, baseline))
     run_rounds(candidates, args)
     sac_time = median(next(c for c in candidates if c.algo == "sac").times)
     default_time = median(candidates[0].times)
@@ -241,7 +248,7 @@ def measure_e2e(args: argparse.Namespace, env_id: str, baseline: str | None) -> 
     common = ["--e2e-env", env_id, "--threads", str(args.threads), "--device", args.device, "--warmup", str(args.warmup)]
     candidates = [Candidate(f"CGAC {path}", "cgac", [*common, "--path", path]) for path in args.paths]
     if baseline is not None:
-        candidates.append(Candidate(f"CGAC at {args.baseline}", "cgac", [*common, "--path", "default"], pythonpath=baseline))
+        candidates.append(baseline_candidate(args, common, baseline))
     run_rounds(candidates, args)
     rows = []
     for candidate in candidates:
@@ -275,6 +282,9 @@ def main() -> None:
     parser.add_argument("--actor", type=int, nargs="+", default=[256, 256], help="actor hidden layers")
     parser.add_argument("--paths", nargs="+", default=["default", "compile", "bf16", "stacked"], choices=list(PATHS))
     parser.add_argument("--baseline", help="git revision of this repository to measure too (e.g. a release tag)")
+    parser.add_argument(
+        "--baseline-path", default="default", choices=list(PATHS), help="update path of the --baseline candidate"
+    )
     parser.add_argument("--activation", choices=["relu", "elu"], default="relu")
     parser.add_argument("--threads", type=int, default=2, help="torch threads of every candidate")
     parser.add_argument("--device", default="cpu")
