@@ -13,7 +13,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
 
-def output_layer_in_float32(linear: Callable[[th.Tensor], th.Tensor], x: th.Tensor) -> th.Tensor:
+def output_layer_in_float32(linear: Callable[[th.Tensor], th.Tensor], x: th.Tensor, enabled: bool = True) -> th.Tensor:
     """
     Apply a critic's output layer in float32 even under autocast. Q-values are sums of rewards (hundreds or thousands),
     and bfloat16 keeps 8 bits of mantissa: rounded to bfloat16 they would move in steps larger than the TD errors
@@ -21,9 +21,10 @@ def output_layer_in_float32(linear: Callable[[th.Tensor], th.Tensor], x: th.Tens
 
     :param linear: The output layer (called with its input)
     :param x: Its input (possibly in the autocast dtype)
-    :return: Its output in float32 (unchanged without autocast)
+    :param enabled: False applies the layer as it is (in the autocast dtype under autocast: Q-values in bfloat16)
+    :return: Its output in float32 (unchanged without autocast or when not enabled)
     """
-    if not th.is_autocast_enabled(x.device.type):
+    if not enabled or not th.is_autocast_enabled(x.device.type):
         return linear(x)
     with th.autocast(x.device.type, enabled=False):
         return linear(x.float())
@@ -55,11 +56,13 @@ class StackedMlp(nn.Module):
 
     :param networks: The networks to stack (same layer sizes)
     :param activation_fn: Their activation function (applied element-wise)
+    :param float32_output: Whether the output layer runs in float32 under autocast (``output_layer_in_float32``)
     """
 
-    def __init__(self, networks: list[nn.Sequential], activation_fn: type[nn.Module]):
+    def __init__(self, networks: list[nn.Sequential], activation_fn: type[nn.Module], float32_output: bool = True):
         super().__init__()
         self.n_networks = len(networks)
+        self.float32_output = float32_output
         linear = [[layer for layer in net if isinstance(layer, nn.Linear)] for net in networks]
         norms = [[layer for layer in net if isinstance(layer, nn.LayerNorm)] for net in networks]
 
@@ -89,7 +92,8 @@ class StackedMlp(nn.Module):
                 h = F.layer_norm(h, (h.shape[-1],)) * self.norm_weights[layer - 1] + self.norm_biases[layer - 1]
             h = self.activation(h)
             if layer == last:
-                return output_layer_in_float32(partial(batched_linear, weight=self.weights[layer], bias=self.biases[layer]), h)
+                output_layer = partial(batched_linear, weight=self.weights[layer], bias=self.biases[layer])
+                return output_layer_in_float32(output_layer, h, self.float32_output)
             h = batched_linear(h, self.weights[layer], self.biases[layer])
         return h
 
@@ -113,6 +117,8 @@ class CGACCritic(ContinuousCritic):
     :param layer_norm: Whether to put LayerNorm after every hidden linear layer
     :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
     :param stacked: Whether to evaluate the critics as one stacked network
+    :param float32_output: Whether the output layers run in float32 under bfloat16 autocast (False: the Q-values are
+        computed and rounded in bfloat16, as the hidden layers are)
     """
 
     def __init__(
@@ -129,6 +135,7 @@ class CGACCritic(ContinuousCritic):
         layer_norm: bool = False,
         use_xavier_init: bool = True,
         stacked: bool = False,
+        float32_output: bool = True,
     ):
         super().__init__(
             observation_space,
@@ -142,6 +149,7 @@ class CGACCritic(ContinuousCritic):
             share_features_extractor,
         )
         self.layer_norm = layer_norm
+        self.float32_output = float32_output
         for idx, q_net in enumerate(self.q_networks):
             assert isinstance(q_net, nn.Sequential)
             if layer_norm:
@@ -166,7 +174,7 @@ class CGACCritic(ContinuousCritic):
         ]
         self.q_stack: StackedMlp | None = None
         if stacked:
-            self.q_stack = StackedMlp(self.q_networks, activation_fn)  # type: ignore[arg-type]
+            self.q_stack = StackedMlp(self.q_networks, activation_fn, float32_output)  # type: ignore[arg-type]
             for idx in range(n_critics):
                 delattr(self, f"qf{idx}")
             self.q_networks = []
@@ -197,7 +205,7 @@ class CGACCritic(ContinuousCritic):
         q_values = []
         for q_net in self.q_networks:
             assert isinstance(q_net, nn.Sequential)
-            q_values.append(output_layer_in_float32(q_net[-1], q_net[:-1](q_input)).squeeze(-1))
+            q_values.append(output_layer_in_float32(q_net[-1], q_net[:-1](q_input), self.float32_output).squeeze(-1))
         return th.stack(q_values)
 
     def set_q_requires_grad(self, requires_grad: bool) -> None:

@@ -254,6 +254,9 @@ class CGACPolicy(BasePolicy):
     :param critic_layer_norm: Whether to put LayerNorm after every hidden layer of the critics
     :param stack_critics: Whether to evaluate the critics as one stacked network (one batched matmul per layer for
         all of them) instead of one network after the other
+    :param critic_float32_output: Whether the critics' output layers run in float32 when the updates run under
+        bfloat16 autocast (``update_precision``); False rounds the Q-values to bfloat16 like the hidden layers.
+        No effect on float32 updates
     """
 
     actor: Actor
@@ -282,6 +285,7 @@ class CGACPolicy(BasePolicy):
         normalize_observations: bool = False,
         critic_layer_norm: bool = False,
         stack_critics: bool = False,
+        critic_float32_output: bool = True,
     ):
         super().__init__(
             observation_space,
@@ -341,6 +345,7 @@ class CGACPolicy(BasePolicy):
             "layer_norm": critic_layer_norm,
             "use_xavier_init": use_xavier_init,
             "stacked": stack_critics,
+            "float32_output": critic_float32_output,
         }
         self._build(lr_schedule)
 
@@ -395,6 +400,7 @@ class CGACPolicy(BasePolicy):
                 normalize_observations=self.normalize_observations,
                 critic_layer_norm=self.critic_kwargs["layer_norm"],
                 stack_critics=self.critic_kwargs["stacked"],
+                critic_float32_output=self.critic_kwargs["float32_output"],
             )
         )
         return data
