@@ -45,11 +45,17 @@ def test_bfloat16_updates_match_float32():
 
 
 @pytest.mark.parametrize("stacked", [True, False])
-def test_bfloat16_keeps_q_values_in_float32(stacked):
+@pytest.mark.parametrize("float32_output", [True, False])
+def test_bfloat16_keeps_q_values_in_float32(stacked, float32_output, tmp_path):
     # Under bfloat16 autocast the critics' hidden layers run in bfloat16, their output layer in float32: Q-values of
-    # hundreds keep their fractional part (bfloat16 alone would round 500.3 to 500)
-    policy_kwargs = dict(net_arch=[32, 32], stack_critics=stacked)
-    critic = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16), policy_kwargs=policy_kwargs).critic
+    # hundreds keep their fractional part (bfloat16 alone would round 500.3 to 500). critic_float32_output=False
+    # rounds them, and is kept by save/load
+    policy_kwargs = dict(net_arch=[32, 32], stack_critics=stacked, critic_float32_output=float32_output)
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16), policy_kwargs=policy_kwargs)
+    model.save(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model")
+    assert loaded.critic.float32_output is loaded.critic_target.float32_output is float32_output
+    critic = model.critic
     with th.no_grad():
         for param in critic.parameters():
             param.mul_(0.01)
@@ -57,11 +63,17 @@ def test_bfloat16_keeps_q_values_in_float32(stacked):
         last_bias.add_(500.3)
     obs, actions = th.randn(8, 3), th.rand(8, 1) * 2 - 1
     q_values = critic.q_values(obs, actions)
+    assert q_values.dtype == th.float32  # without autocast the option changes nothing
     with th.autocast("cpu", dtype=th.bfloat16):
         q_values_bf16 = critic.q_values(obs, actions)
-    assert q_values_bf16.dtype == th.float32
-    th.testing.assert_close(q_values_bf16[0], q_values[0], rtol=0, atol=0.02)
-    assert (q_values_bf16[0] - 500).abs().min() > 0.2
+    if float32_output:
+        assert q_values_bf16.dtype == th.float32
+        th.testing.assert_close(q_values_bf16[0], q_values[0], rtol=0, atol=0.02)
+        assert (q_values_bf16[0] - 500).abs().min() > 0.2
+    else:
+        # bfloat16 steps are 2 between 256 and 512
+        assert q_values_bf16.dtype == th.bfloat16
+        assert set(q_values_bf16[0].float().tolist()) <= {498.0, 500.0, 502.0}
 
 
 @pytest.mark.parametrize("native", [True, False])
