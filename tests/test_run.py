@@ -37,6 +37,7 @@ def make_env(n_envs: int = 4, env_id: str = "Pendulum-v1", **kwargs):
         dict(ent_coef_monotone=True, final_learning_rate=1e-4, lr_decay_iterations=50),
         dict(update_precision="bfloat16", clip_actor_gradient_outliers=True),
         dict(update_precision="auto"),
+        dict(update_precision="bfloat16", policy_kwargs=dict(net_arch=[16], critic_float32_output=False, stack_critics=True)),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_kwargs=dict(foreach=True))),
     ],
 )

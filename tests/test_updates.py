@@ -46,7 +46,7 @@ def test_bfloat16_updates_match_float32():
 
 @pytest.mark.parametrize("stacked", [True, False])
 @pytest.mark.parametrize("float32_output", [True, False])
-def test_bfloat16_keeps_q_values_in_float32(stacked, float32_output, tmp_path):
+def test_bfloat16_q_value_precision(stacked, float32_output, tmp_path):
     # Under bfloat16 autocast the critics' hidden layers run in bfloat16, their output layer in float32: Q-values of
     # hundreds keep their fractional part (bfloat16 alone would round 500.3 to 500). critic_float32_output=False
     # rounds them, and is kept by save/load
