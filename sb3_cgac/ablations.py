@@ -1,8 +1,10 @@
 """
 The paper's ablations (Fig. 3) on a cheap env: number of parallel envs, no policy averaging, no value averaging,
 neither, no alpha clamp and the paper's alpha clamp; and this package's stabilisers switched on one at a time:
-first episodes cut at random lengths, the learning-rate decay (to 1e-4 over 4k iterations), LayerNorm critics and
-the actor's initial mean layer scaled by 0.01 (``small_mean_init``) or not (``full_mean_init``).
+first episodes cut at random lengths, the learning-rate decay (to 1e-4 over 4k iterations), LayerNorm critics,
+AdamW's weight decay (``weight_decay``), the authors' larger critics (``big_critic``: [512, 512, 256]), no observation
+normalisation (``no_obs_norm``) or normalisation inside the policy instead of ``VecNormalize`` (``policy_obs_norm``),
+and the actor's initial mean layer scaled by 0.01 (``small_mean_init``) or not (``full_mean_init``).
 Each variant is the ``cgac`` entry of ``hyperparams/cgac.yml`` (or of ``--conf-dir``'s) with one change, run by
 ``sb3_cgac.compare`` (same budget options, CSV, plots and table; times are compared with the full CGAC)::
 
@@ -19,7 +21,18 @@ from typing import Any
 from sb3_cgac.compare import main as compare_main
 from sb3_cgac.zoo import HYPERPARAMS_DIR
 
+import torch as th
 import yaml
+
+
+class _Code(str):
+    """A Python expression (a class, say) that goes into a ``policy_kwargs`` string as code, not as a quoted string."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+ADAMW = _Code("th.optim.AdamW")  # the zoo evaluates policy_kwargs with torch imported as th
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "cgac": {},
@@ -32,6 +45,13 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # The authors decay over 20k iterations of 4096 envs; 4k iterations fit a run of minutes on one core
     "lr_decay": {"final_learning_rate": 1e-4, "lr_decay_iterations": 4000},
     "critic_layer_norm": {"policy_kwargs": {"critic_layer_norm": True}},
+    # Decoupled weight decay at AdamW's default coefficient (SimBa's; FastTD3 uses 0.1 at a 7x smaller learning rate)
+    "weight_decay": {"policy_kwargs": {"optimizer_class": ADAMW, "optimizer_kwargs": {"weight_decay": 0.01}}},
+    # The authors' default critic width (their README commands use [1024, 1024, 256]); the actor keeps the entry's
+    "big_critic": {"policy_kwargs": {"net_arch": {"qf": [512, 512, 256]}}},
+    "no_obs_norm": {"normalize": False},
+    # Running mean/std inside the policy (saved with it), clipped at 5 as the authors do, instead of VecNormalize
+    "policy_obs_norm": {"normalize": False, "policy_kwargs": {"normalize_observations": True}},
     # The actor's initial mean layer scaled by 0.01 (near-zero initial actions), or left as initialised (the paper's)
     "small_mean_init": {"policy_kwargs": {"mean_init_scale": 0.01}},
     "full_mean_init": {"policy_kwargs": {"mean_init_scale": 1.0}},
@@ -47,6 +67,9 @@ def entry_variants(entry: dict[str, Any], n_envs: list[int] | None = None) -> di
     :return: Variant name -> hyperparameters that replace the entry's
     """
     variants = {name: dict(overrides) for name, overrides in VARIANTS.items()}
+    # The actor of big_critic keeps the entry's layers: the critic alone gets wider
+    critic_arch = variants["big_critic"]["policy_kwargs"]["net_arch"]
+    variants["big_critic"]["policy_kwargs"] = {"net_arch": {"pi": _actor_arch(entry), **critic_arch}}
     for overrides in variants.values():
         if isinstance(overrides.get("policy_kwargs"), dict):
             # Added to (or replacing keys of) the entry's own policy_kwargs, a "dict(...)" string in the YAML file
@@ -58,6 +81,16 @@ def entry_variants(entry: dict[str, Any], n_envs: list[int] | None = None) -> di
             # The entry's batch does not fit in the smaller window: CGAC's default (the whole window) instead
             variants[f"n_envs_{count}"]["batch_size"] = None
     return variants
+
+
+def _actor_arch(entry: dict[str, Any]) -> list[int]:
+    """The actor's hidden layers in a YAML entry (the policy's default, [256, 256], where it names none)."""
+    policy_kwargs = entry.get("policy_kwargs") or {}
+    if isinstance(policy_kwargs, str):
+        # The zoo evaluates this string with torch as ``th`` in scope; so does this
+        policy_kwargs = eval(policy_kwargs, {"th": th, "nn": th.nn})
+    net_arch = policy_kwargs.get("net_arch") or [256, 256]
+    return list(net_arch["pi"] if isinstance(net_arch, dict) else net_arch)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch as th
 import yaml
 
 pytest.importorskip("rl_zoo3")
@@ -207,14 +208,14 @@ def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
         [sys.executable, "-m", "sb3_cgac.ablations", "--env", "Pendulum-v1", "--variants", "cgac", "no_pol_avg",
-         "n_envs_16", "critic_layer_norm", "--seeds", "1", "--steps", "640", "--jobs", "2", "--eval-episodes", "1",
-         "--eval-envs", "1", "--out", str(out)],
+         "n_envs_16", "critic_layer_norm", "weight_decay", "policy_obs_norm", "--seeds", "1", "--steps", "640",
+         "--jobs", "2", "--eval-episodes", "1", "--eval-envs", "1", "--out", str(out)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     table = (out / "summary.md").read_text()
     assert "best of cgac's final returns" in table
-    for variant in ("cgac", "no_pol_avg", "n_envs_16", "critic_layer_norm"):
+    for variant in ("cgac", "no_pol_avg", "n_envs_16", "critic_layer_norm", "weight_decay", "policy_obs_norm"):
         assert f"| {variant} |" in table
 
 
@@ -229,6 +230,18 @@ def test_ablation_variants_merge_policy_kwargs():
     )
     assert eval(variants["full_mean_init"]["policy_kwargs"]) == dict(net_arch=[64, 64], mean_init_scale=1.0)
     assert eval(entry_variants({"n_envs": 64})["small_mean_init"]["policy_kwargs"]) == dict(mean_init_scale=0.01)
+    # The new stabilisers: AdamW's weight decay, a wider critic beside the entry's actor, observation normalisation
+    # off or inside the policy instead of VecNormalize
+    assert eval(variants["weight_decay"]["policy_kwargs"], {"th": th}) == dict(
+        net_arch=[64, 64], mean_init_scale=0.01, optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(weight_decay=0.01)
+    )
+    assert eval(variants["big_critic"]["policy_kwargs"])["net_arch"] == dict(pi=[64, 64], qf=[512, 512, 256])
+    assert eval(entry_variants({"n_envs": 8})["big_critic"]["policy_kwargs"])["net_arch"]["pi"] == [256, 256]
+    pi_qf = "dict(net_arch=dict(pi=[32], qf=[16]))"
+    assert eval(entry_variants({"n_envs": 8, "policy_kwargs": pi_qf})["big_critic"]["policy_kwargs"])["net_arch"]["pi"] == [32]
+    assert variants["no_obs_norm"] == {"normalize": False}
+    assert variants["policy_obs_norm"]["normalize"] is False
+    assert eval(variants["policy_obs_norm"]["policy_kwargs"])["normalize_observations"] is True
     # Env-count variants; the entry's batch does not fit in 16 envs x 32 steps, so the smaller one uses the default
     assert variants["n_envs_16"] == {"n_envs": 16, "batch_size": None} and variants["n_envs_256"] == {"n_envs": 256}
 
