@@ -45,7 +45,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # The authors decay over 20k iterations of 4096 envs; 4k iterations fit a run of minutes on one core
     "lr_decay": {"final_learning_rate": 1e-4, "lr_decay_iterations": 4000},
     "critic_layer_norm": {"policy_kwargs": {"critic_layer_norm": True}},
-    # Decoupled weight decay at AdamW's default coefficient (SimBa's; FastTD3 uses 0.1 at a 7x smaller learning rate)
+    # Decoupled weight decay at AdamW's default coefficient (SimBa's; FastTD3 uses 0.1 with a smaller learning rate)
     "weight_decay": {"policy_kwargs": {"optimizer_class": ADAMW, "optimizer_kwargs": {"weight_decay": 0.01}}},
     # The authors' default critic width (their README commands use [1024, 1024, 256]); the actor keeps the entry's
     "big_critic": {"policy_kwargs": {"net_arch": {"qf": [512, 512, 256]}}},
@@ -89,7 +89,9 @@ def _actor_arch(entry: dict[str, Any]) -> list[int]:
     if isinstance(policy_kwargs, str):
         # The zoo evaluates this string with torch as ``th`` in scope; so does this
         policy_kwargs = eval(policy_kwargs, {"th": th, "nn": th.nn})
-    net_arch = policy_kwargs.get("net_arch") or [256, 256]
+    net_arch = policy_kwargs.get("net_arch")
+    if net_arch is None:
+        return [256, 256]
     return list(net_arch["pi"] if isinstance(net_arch, dict) else net_arch)
 
 

@@ -236,9 +236,14 @@ def test_ablation_variants_merge_policy_kwargs():
         net_arch=[64, 64], mean_init_scale=0.01, optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(weight_decay=0.01)
     )
     assert eval(variants["big_critic"]["policy_kwargs"])["net_arch"] == dict(pi=[64, 64], qf=[512, 512, 256])
-    assert eval(entry_variants({"n_envs": 8})["big_critic"]["policy_kwargs"])["net_arch"]["pi"] == [256, 256]
-    pi_qf = "dict(net_arch=dict(pi=[32], qf=[16]))"
-    assert eval(entry_variants({"n_envs": 8, "policy_kwargs": pi_qf})["big_critic"]["policy_kwargs"])["net_arch"]["pi"] == [32]
+
+    def big_critic_actor(policy_kwargs):
+        overrides = entry_variants({"n_envs": 8, "policy_kwargs": policy_kwargs})["big_critic"]
+        return eval(overrides["policy_kwargs"])["net_arch"]["pi"]
+
+    # The actor keeps the entry's layers, the policy's default where the entry names none
+    assert big_critic_actor("dict()") == [256, 256] and big_critic_actor("dict(net_arch=[])") == []
+    assert big_critic_actor("dict(net_arch=dict(pi=[32], qf=[16]))") == [32]
     assert variants["no_obs_norm"] == {"normalize": False}
     assert variants["policy_obs_norm"]["normalize"] is False
     assert eval(variants["policy_obs_norm"]["policy_kwargs"])["normalize_observations"] is True
