@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_cgac.compare import main as compare_main
+from sb3_cgac.policies import DEFAULT_NET_ARCH
 from sb3_cgac.zoo import HYPERPARAMS_DIR
 
 import torch as th
@@ -84,14 +85,14 @@ def entry_variants(entry: dict[str, Any], n_envs: list[int] | None = None) -> di
 
 
 def _actor_arch(entry: dict[str, Any]) -> list[int]:
-    """The actor's hidden layers in a YAML entry (the policy's default, [256, 256], where it names none)."""
+    """The actor's hidden layers in a YAML entry (the policy's default where it names none)."""
     policy_kwargs = entry.get("policy_kwargs") or {}
     if isinstance(policy_kwargs, str):
         # The zoo evaluates this string with torch as ``th`` in scope; so does this
         policy_kwargs = eval(policy_kwargs, {"th": th, "nn": th.nn})
     net_arch = policy_kwargs.get("net_arch")
     if net_arch is None:
-        return [256, 256]
+        return list(DEFAULT_NET_ARCH)
     return list(net_arch["pi"] if isinstance(net_arch, dict) else net_arch)
 
 

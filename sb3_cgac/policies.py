@@ -26,6 +26,8 @@ LOG_STD_MAX = 2
 LOG_STD_MIN = -20
 # The authors' code clips normalised observations at +-5
 OBS_CLIP = 5.0
+# Hidden layers of actor and critics when policy_kwargs name no net_arch (the paper's Table 1)
+DEFAULT_NET_ARCH = [256, 256]
 
 
 class RunningObsNormalizer(nn.Module):
@@ -308,7 +310,7 @@ class CGACPolicy(BasePolicy):
                 f"1 for the unscaled init, 0.01 for near-zero initial actions), got {mean_init_scale}."
             )
         if net_arch is None:
-            net_arch = [256, 256]
+            net_arch = list(DEFAULT_NET_ARCH)
         actor_arch, critic_arch = get_actor_critic_arch(net_arch)
         self.net_arch = net_arch
         self.activation_fn = activation_fn
