@@ -44,6 +44,11 @@ PATHS: dict[str, dict[str, Any]] = {
     "bf16": {"update_precision": "bfloat16"},
     "compile+bf16": {"compile_updates": True, "update_precision": "bfloat16"},
     "stacked": {"policy_kwargs": {"stack_critics": True}},
+    # CUDA only: the updates replayed from CUDA graphs, ours or torch.compile's
+    "cuda-graphs": {"cuda_graphs": True},
+    "bf16+cuda-graphs": {"update_precision": "bfloat16", "cuda_graphs": True},
+    "stacked+cuda-graphs": {"cuda_graphs": True, "policy_kwargs": {"stack_critics": True}},
+    "compile-cudagraphs": {"compile_updates": {"mode": "reduce-overhead"}},
 }
 
 
@@ -299,8 +304,8 @@ def main() -> None:
     parser.add_argument("--batch", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--critic", type=int, nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.e2e and "stacked" in args.paths:
-        parser.error("--e2e measures the entries' own networks: leave 'stacked' out of --paths")
+    if args.e2e and any("policy_kwargs" in PATHS[path] for path in args.paths):
+        parser.error("--e2e measures the entries' own networks: leave the stacked paths out of --paths")
     if args.worker:
         worker(args)
         return

@@ -1,7 +1,24 @@
+import warnings
+from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
-from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples, observations_to_tensor, split_episode_ends
+from sb3_cgac.buffers import (
+    CGACRolloutBuffer,
+    CGACSamples,
+    observations_to_tensor,
+    samples_from_tensors,
+    samples_to_tensors,
+    split_episode_ends,
+)
 from sb3_cgac.callbacks import ENTROPY_SCHEDULES, EntropyScheduleCallback, with_entropy_schedule
+from sb3_cgac.cuda_graphs import (
+    GraphedStep,
+    keep_optimizer_tensors,
+    prepare_optimizers_for_capture,
+    release_optimizers_from_capture,
+    restore_optimizer_tensors,
+    set_learning_rate,
+)
 from sb3_cgac.hyperparameters import (
     FEW_ENVS,
     check_action_space,
@@ -19,12 +36,13 @@ from sb3_cgac.wrappers import warn_synchronised_resets
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import FloatSchedule, update_learning_rate
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TensorDict
+from stable_baselines3.common.utils import FloatSchedule
 from stable_baselines3.common.vec_env import VecEnv
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
@@ -96,6 +114,10 @@ class CGAC(OnPolicyAlgorithm):
         or CPUs with AVX512-BF16 or AMX; the critics' output layer, losses, optimizers, collection and the
         outlier-clipped actor loss stay float32), or ``"auto"``: bfloat16 on CPUs that have it in hardware, float32
         elsewhere (other CPUs emulate bfloat16; CUDA was not measured), resolved again when a saved model is loaded
+    :param cuda_graphs: Capture the critic update and the actor update (with its entropy-coefficient and Polyak
+        updates) as CUDA graphs after 3 eager steps, and replay them: one launch instead of hundreds of small kernels
+        per step, the same arithmetic (``sb3_cgac.cuda_graphs``). CUDA only (ignored with a warning elsewhere); not
+        with ``compile_updates`` or ``clip_actor_gradient_outliers``, and the optimizers need a ``capturable`` option
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -151,6 +173,7 @@ class CGAC(OnPolicyAlgorithm):
         behaviour_kl_coef: float = 0.0,
         compile_updates: bool | dict[str, Any] = False,
         update_precision: str = "float32",
+        cuda_graphs: bool = False,
         rollout_buffer_class: type[CGACRolloutBuffer] | None = None,
         rollout_buffer_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -203,6 +226,7 @@ class CGAC(OnPolicyAlgorithm):
         self.behaviour_kl_coef = behaviour_kl_coef
         self.compile_updates = compile_updates
         self.update_precision = update_precision
+        self.cuda_graphs = cuda_graphs
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
         self.rollout_buffer_kwargs = rollout_buffer_kwargs or {}
         self.log_ent_coef: th.Tensor | None = None
@@ -228,7 +252,7 @@ class CGAC(OnPolicyAlgorithm):
         names = ["n_steps", "buffer_window", "critic_updates_per_step", "policy_delay", "batch_size", "gae_horizon", "tau"]
         names += ["policy_tau", "gamma", "gae_lambda", "lr_decay_iterations", "final_learning_rate", "max_grad_norm"]
         names += ["behaviour_kl_coef", "ent_coef", "ent_coef_monotone", "entropy_schedule", "entropy_schedule_kwargs"]
-        names += ["critic_loss", "update_precision", "compile_updates"]
+        names += ["critic_loss", "update_precision", "compile_updates", "cuda_graphs", "clip_actor_gradient_outliers"]
         check_hyperparameters(**{name: getattr(self, name) for name in names}, entropy_schedules=tuple(ENTROPY_SCHEDULES))
 
     def _setup_model(self) -> None:
@@ -281,6 +305,13 @@ class CGAC(OnPolicyAlgorithm):
             compile_kwargs = self.compile_updates if isinstance(self.compile_updates, dict) else {}
             self._critic_loss_fn = th.compile(critic_loss, **compile_kwargs)
             self._actor_loss_fn = th.compile(actor_loss, **compile_kwargs)
+        self._graphed_updates: tuple[GraphedStep, GraphedStep] | None = None  # captured at the first updates
+        if self.cuda_graphs and self.device.type != "cuda":
+            warnings.warn(
+                f"CGAC: cuda_graphs=True has no effect on device {self.device}: the updates run eagerly.", stacklevel=2
+            )
+        space = self.observation_space
+        self._obs_keys = list(space.spaces) if isinstance(space, spaces.Dict) else None
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -377,6 +408,34 @@ class CGAC(OnPolicyAlgorithm):
         callback.on_rollout_end()
         return True
 
+    def _critic_update(self, *minibatch: th.Tensor) -> th.Tensor:
+        """One critic update on a minibatch given as ``samples_to_tensors`` does; returns its statistics."""
+        data = samples_from_tensors(minibatch, self._obs_keys)
+        return th.stack(self._critic_step(data, data.weights.sum().clamp_min(1.0)))
+
+    def _actor_update(self, target_entropy: th.Tensor, *minibatch: th.Tensor) -> th.Tensor:
+        """One actor and entropy-coefficient update, then the Polyak updates; returns the update's statistics."""
+        data = samples_from_tensors(minibatch, self._obs_keys)
+        stats = th.stack(self._actor_step(data, data.weights.sum().clamp_min(1.0), target_entropy))
+        self._polyak_updates()
+        return stats
+
+    def _update_steps(self) -> tuple[Callable[..., th.Tensor], Callable[..., th.Tensor]]:
+        """The critic and actor update functions: the eager ones, or their CUDA graphs (made at the first call)."""
+        if not (self.cuda_graphs and self.device.type == "cuda"):
+            return self._critic_update, self._actor_update
+        if self._graphed_updates is None:
+            prepare_optimizers_for_capture(self._optimizers(), self.device)
+            self._graphed_updates = (
+                GraphedStep(self._critic_update, "critic update"),
+                GraphedStep(self._actor_update, "actor update"),
+            )
+        return self._graphed_updates
+
+    def _optimizers(self) -> list[th.optim.Optimizer]:
+        """The optimizers of the updates: actor, critics and, when alpha is learned, alpha's."""
+        return [self.actor.optimizer, self.critic.optimizer, *([self.ent_coef_optimizer] if self.ent_coef_optimizer else [])]
+
     def _critic_step(self, data: CGACSamples, weight_sum: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         # data: observations, actions, returns and weights, in the order of losses.critic_loss
         critic_loss, q_mean = self._critic_loss_fn(self.critic, *data, weight_sum, self.critic_loss, self._autocast_dtype)
@@ -387,7 +446,7 @@ class CGAC(OnPolicyAlgorithm):
         return critic_loss.detach(), q_mean, grad_norm
 
     def _actor_step(
-        self, data: CGACSamples, weight_sum: th.Tensor, target_entropy: float
+        self, data: CGACSamples, weight_sum: th.Tensor, target_entropy: th.Tensor | float
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.log_ent_coef is not None else self.ent_coef_tensor
         # Critic gradients are not needed for the actor loss (paper Eq. 7): skip their computation
@@ -432,13 +491,13 @@ class CGAC(OnPolicyAlgorithm):
             decayed_learning_rate(schedule(progress), self.final_learning_rate, iterations, self.lr_decay_iterations)
             for schedule in (self.lr_schedule, self.critic_lr_schedule)
         )
-        update_learning_rate(self.actor.optimizer, actor_lr)
-        update_learning_rate(self.critic.optimizer, critic_lr)
+        set_learning_rate(self.actor.optimizer, actor_lr)
+        set_learning_rate(self.critic.optimizer, critic_lr)
         self.logger.record("train/learning_rate", actor_lr)
         self.logger.record("train/critic_learning_rate", critic_lr)
         if self.ent_coef_optimizer is not None:
             lr = self.ent_coef_lr_schedule(progress) if self.ent_coef_lr_schedule else 10 * self.lr_schedule(progress)
-            update_learning_rate(self.ent_coef_optimizer, lr)
+            set_learning_rate(self.ent_coef_optimizer, lr)
 
     def train(self) -> None:
         """Value targets of the new steps, then critic, actor, entropy-coefficient and Polyak updates on minibatches."""
@@ -449,15 +508,15 @@ class CGAC(OnPolicyAlgorithm):
         self._update_learning_rates()
         target_entropy = -self.target_entropy_beta * float(get_action_dim(self.action_space))
 
+        critic_update, actor_update = self._update_steps()
+        target_entropy_tensor = th.tensor(target_entropy, device=self.device)
         critic_stats, actor_stats = [], []
         for _ in range(self.critic_updates_per_step * self.n_steps):
-            data = self.rollout_buffer.sample(self._batch_size)
-            weight_sum = data.weights.sum().clamp_min(1.0)
-            critic_stats.append(th.stack(self._critic_step(data, weight_sum)))
+            minibatch = samples_to_tensors(self.rollout_buffer.sample(self._batch_size))
+            critic_stats.append(critic_update(*minibatch))
             self._n_updates += 1
             if self._n_updates % self.policy_delay == 0:
-                actor_stats.append(th.stack(self._actor_step(data, weight_sum, target_entropy)))
-                self._polyak_updates()
+                actor_stats.append(actor_update(target_entropy_tensor, *minibatch))
 
         self.policy.set_training_mode(False)
         if not self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef])):
@@ -506,7 +565,7 @@ class CGAC(OnPolicyAlgorithm):
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs"]
         excluded += ["_entropy_schedule_callback", "_warned_synchronised_resets", "_autocast_dtype", "_critic_loss_fn"]
         excluded += ["_actor_loss_fn", "_critic_parameters", "_actor_parameters"]
-        excluded += ["_critic_target_parameters", "_actor_avg_parameters"]
+        excluded += ["_critic_target_parameters", "_actor_avg_parameters", "_graphed_updates", "_obs_keys"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -514,3 +573,25 @@ class CGAC(OnPolicyAlgorithm):
         if self.ent_coef_optimizer is not None:
             return [*state_dicts, "ent_coef_optimizer"], ["gradient_ratio_average", "log_ent_coef"]
         return state_dicts, ["gradient_ratio_average", "ent_coef_tensor"]
+
+    def get_parameters(self) -> dict[str, dict]:
+        params = super().get_parameters()
+        # CUDA graphs make the optimizers' learning rates tensors and their steps capturable: saved models hold the
+        # plain form whatever the training used, so that they load on any device
+        for name in ("actor.optimizer", "critic.optimizer", "ent_coef_optimizer"):
+            for group in params.get(name, {}).get("param_groups", []):
+                group["capturable"] = False
+                if isinstance(group["lr"], th.Tensor):
+                    group["lr"] = float(group["lr"])
+        return params
+
+    def set_parameters(
+        self, load_path_or_dict: str | TensorDict, exact_match: bool = True, device: th.device | str = "auto"
+    ) -> None:
+        # The networks load in place, the optimizers' states do not: the CUDA graphs of the updates read the old tensors,
+        # so the loaded values are copied into those (a second capture of the same parameters' updates failed on CUDA)
+        kept = keep_optimizer_tensors(self._optimizers()) if self._graphed_updates is not None else None
+        super().set_parameters(load_path_or_dict, exact_match=exact_match, device=device)
+        if kept is not None and not restore_optimizer_tensors(self._optimizers(), kept):
+            release_optimizers_from_capture(self._optimizers())
+            self._graphed_updates = None

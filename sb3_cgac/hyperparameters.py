@@ -80,6 +80,8 @@ def check_hyperparameters(
     critic_loss: str,
     update_precision: str,
     compile_updates: Any,
+    cuda_graphs: Any = False,
+    clip_actor_gradient_outliers: bool = False,
 ) -> None:
     """
     Check CGAC's constructor arguments that do not depend on the env (see ``CGAC`` for their meaning); each error
@@ -115,6 +117,23 @@ def check_hyperparameters(
     if not isinstance(compile_updates, (bool, dict)):
         raise ValueError(
             f"CGAC: compile_updates must be True, False or a dict of torch.compile keyword arguments, got {compile_updates!r}."
+        )
+    check_cuda_graphs(cuda_graphs, compile_updates, clip_actor_gradient_outliers)
+
+
+def check_cuda_graphs(cuda_graphs: Any, compile_updates: Any, clip_actor_gradient_outliers: bool) -> None:
+    """``cuda_graphs`` is a bool, and not combined with the options whose steps cannot be captured as they are."""
+    if not isinstance(cuda_graphs, bool):
+        raise ValueError(f"CGAC: cuda_graphs must be True or False, got {cuda_graphs!r}.")
+    if cuda_graphs and compile_updates:
+        raise ValueError(
+            "CGAC: cuda_graphs=True and compile_updates cannot be combined; choose one (for torch.compile's own CUDA "
+            "graphs, compile_updates=dict(mode='reduce-overhead'))."
+        )
+    if cuda_graphs and clip_actor_gradient_outliers:
+        raise ValueError(
+            "CGAC: cuda_graphs=True does not support clip_actor_gradient_outliers=True (its running average is "
+            "replaced at every step); turn one of them off."
         )
 
 

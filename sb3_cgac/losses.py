@@ -187,7 +187,7 @@ def update_log_ent_coef(
     log_prob: th.Tensor,
     weights: th.Tensor,
     weight_sum: th.Tensor,
-    target_entropy: float,
+    target_entropy: th.Tensor | float,
     mode: bool | str = "above_target",
 ) -> th.Tensor:
     """

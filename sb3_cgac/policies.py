@@ -24,6 +24,8 @@ from torch import nn
 # Same caps on the log standard deviation as SB3's SAC
 LOG_STD_MAX = 2
 LOG_STD_MIN = -20
+LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))  # as torch.distributions.Normal computes it
+TANH_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution's epsilon in the log-probability of tanh(x)
 # The authors' code clips normalised observations at +-5
 OBS_CLIP = 5.0
 # Hidden layers of actor and critics when policy_kwargs name no net_arch (the paper's Table 1)
@@ -205,7 +207,16 @@ class Actor(BasePolicy):
         :return: Squashed actions and their log probability
         """
         mean_actions, log_std = self.get_action_dist_params(obs)
-        return self.action_dist.log_prob_from_params(mean_actions, log_std)
+        # The arithmetic of SB3's SquashedDiagGaussianDistribution.log_prob_from_params, op for op, without
+        # torch.distributions: its argument checks read tensors on the host, a device sync in every update on a GPU,
+        # which a CUDA graph cannot hold
+        std = th.ones_like(mean_actions) * log_std.exp()
+        noise = th.empty(std.shape, dtype=mean_actions.dtype, device=mean_actions.device).normal_()
+        gaussian_actions = mean_actions + noise * std
+        actions = th.tanh(gaussian_actions)
+        gaussian_log_prob = -((gaussian_actions - mean_actions) ** 2) / (2 * std**2) - std.log() - LOG_SQRT_2PI
+        log_prob = gaussian_log_prob.sum(dim=1) - th.sum(th.log(1 - actions**2 + TANH_EPSILON), dim=1)
+        return actions, log_prob
 
     def sample(self, obs: PyTorchObs, n_samples: int) -> th.Tensor:
         """

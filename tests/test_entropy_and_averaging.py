@@ -89,7 +89,7 @@ def test_alpha_clamp_releases_only_below_target():
     data = model.rollout_buffer.sample(64)
     weight_sum = data.weights.sum()
     # Momentum that pushes log(alpha) up, whatever this batch's gradient says
-    model.log_ent_coef.grad = th.tensor([-1e6])
+    model.log_ent_coef.grad = th.tensor([-1e6], device=model.device)
     model.ent_coef_optimizer.step()
     for target_entropy, may_rise in ((-100.0, False), (100.0, True)):
         before = model.log_ent_coef.item()

@@ -233,8 +233,8 @@ def test_timeout_bootstrap_infinite_horizon():
         seed=0,
     )
     model.learn(6000)
-    obs = th.zeros(8, 2)
-    actions = th.linspace(-0.9, 0.9, 8).reshape(-1, 1)
+    obs = th.zeros(8, 2, device=model.device)
+    actions = th.linspace(-0.9, 0.9, 8, device=model.device).reshape(-1, 1)
     with th.no_grad():
         q_values = th.cat(model.critic(obs, actions), dim=1)
     assert q_values.mean().item() == pytest.approx(1 / (1 - gamma), rel=0.1)

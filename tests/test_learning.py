@@ -40,16 +40,26 @@ def reaches_threshold(model: CGAC, budget: int, seed: int) -> float:
     return evaluation.best_mean_reward
 
 
-def entry_model(seed: int) -> CGAC:
+def entry_model(seed: int, **overrides) -> CGAC:
     n_envs, random_first_episode, kwargs = zoo_hyperparams("Pendulum-v1")
     env = make_vec_env("Pendulum-v1", n_envs=n_envs, seed=seed, random_first_episode=random_first_episode)
-    return CGAC("MlpPolicy", env, seed=seed, **kwargs)
+    return CGAC("MlpPolicy", env, seed=seed, **{**kwargs, **overrides})
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_pendulum_entry_reaches_minus_200(seed):
     """Budget 200k steps; seeds 0-3 needed 60k-80k here."""
     best = reaches_threshold(entry_model(seed), 200_000, seed)
+    assert best >= THRESHOLD, f"seed {seed}: best mean return {best:.0f} after 200k steps"
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pendulum_entry_cuda_graphs(seed):
+    """The entry on the GPU with its updates replayed from CUDA graphs (CI has no GPU: run on a machine with one)."""
+    model = entry_model(seed, device="cuda", cuda_graphs=True)
+    best = reaches_threshold(model, 200_000, seed)
+    assert model._graphed_updates is not None
     assert best >= THRESHOLD, f"seed {seed}: best mean return {best:.0f} after 200k steps"
 
 

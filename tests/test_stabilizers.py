@@ -74,6 +74,7 @@ def test_mean_init_scale(tmp_path):
     th.testing.assert_close(small.policy.actor.latent_pi[0].weight, full.policy.actor.latent_pi[0].weight)
     # The averaged actor, which acts, starts as a copy; the untrained deterministic actions are near zero
     th.testing.assert_close(small.policy.actor_avg.mu.weight, small.policy.actor.mu.weight)
+    obs = obs.to(full.device)
     mean_full, _ = full.policy.actor_avg.get_action_dist_params(obs)
     mean_small, _ = small.policy.actor_avg.get_action_dist_params(obs)
     th.testing.assert_close(mean_small, 0.01 * mean_full)
@@ -185,7 +186,7 @@ def test_warns_about_synchronised_resets():
 
 
 def test_behaviour_kl_matches_torch_distributions():
-    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), **SMALL)
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), device="cpu", **SMALL)
     obs = th.randn(32, 3)
     weights, weight_sum = th.ones(32), th.tensor(32.0)
     # Identical actors: no penalty
@@ -212,7 +213,7 @@ def test_behaviour_kl_coef_keeps_the_actor_near_the_averaged_actor():
         env = make_vec_env("Pendulum-v1", n_envs=8)
         model = CGAC("MlpPolicy", env, behaviour_kl_coef=coef, policy_tau=0.001, batch_size=64, **SMALL)
         model.learn(800)
-        obs = th.randn(256, 3)
+        obs = th.randn(256, 3, device=model.device)
         with th.no_grad():
             mean, _ = model.actor.get_action_dist_params(obs)
             mean_b, _ = model.actor_avg.get_action_dist_params(obs)

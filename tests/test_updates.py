@@ -51,9 +51,9 @@ def test_bfloat16_q_value_precision(stacked, float32_output, tmp_path):
     # hundreds keep their fractional part (bfloat16 alone would round 500.3 to 500). critic_float32_output=False
     # rounds them, and is kept by save/load
     policy_kwargs = dict(net_arch=[32, 32], stack_critics=stacked, critic_float32_output=float32_output)
-    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16), policy_kwargs=policy_kwargs)
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16), policy_kwargs=policy_kwargs, device="cpu")
     model.save(tmp_path / "model")
-    loaded = CGAC.load(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model", device="cpu")
     assert loaded.critic.float32_output is loaded.critic_target.float32_output is float32_output
     critic = model.critic
     with th.no_grad():
@@ -83,15 +83,15 @@ def test_auto_precision_follows_the_cpu(native, monkeypatch, tmp_path):
     monkeypatch.setattr(th.cpu, "_is_amx_tile_supported", lambda: False)
     expected = th.bfloat16 if native else None
     env = make_vec_env("Pendulum-v1", n_envs=16)
-    model = CGAC("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]), update_precision="auto")
+    model = CGAC("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]), update_precision="auto", device="cpu")
     assert model._autocast_dtype is expected
-    assert CGAC("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]))._autocast_dtype is None  # the default: float32
+    assert CGAC("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]), device="cpu")._autocast_dtype is None  # default: float32
     assert resolve_update_precision("float32", th.device("cpu")) is None
     assert resolve_update_precision("bfloat16", th.device("cpu")) is th.bfloat16
     assert resolve_update_precision("auto", th.device("cuda")) is None  # not measured on CUDA: float32
     model.save(tmp_path / "model")
     monkeypatch.setattr(th.cpu, "_is_avx512_bf16_supported", lambda: not native)
-    loaded = CGAC.load(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model", device="cpu")
     assert loaded.update_precision == "auto" and loaded._autocast_dtype is (None if native else th.bfloat16)
 
 
@@ -145,6 +145,6 @@ def test_stacked_critics_match_separate_critics():
         **{**SMALL, **dict(policy_kwargs=dict(net_arch=[32, 32], critic_layer_norm=True, stack_critics=True))},
     )
     back.policy.load_state_dict(converted.policy.state_dict())
-    obs, actions = th.randn(5, 3), th.rand(5, 1) * 2 - 1
+    obs, actions = th.randn(5, 3, device=back.device), th.rand(5, 1, device=back.device) * 2 - 1
     th.testing.assert_close(back.critic.q_values(obs, actions), stacked.critic.q_values(obs, actions))
     th.testing.assert_close(back.critic(obs, actions)[1], stacked.critic(obs, actions)[1])
