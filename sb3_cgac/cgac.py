@@ -113,7 +113,8 @@ class CGAC(OnPolicyAlgorithm):
     :param update_precision: ``"float32"``, or ``"bfloat16"``: the update's networks under bfloat16 autocast (CUDA,
         or CPUs with AVX512-BF16 or AMX; the critics' output layer, losses, optimizers, collection and the
         outlier-clipped actor loss stay float32), or ``"auto"``: bfloat16 on CPUs that have it in hardware, float32
-        elsewhere (other CPUs emulate bfloat16; CUDA was not measured), resolved again when a saved model is loaded
+        elsewhere (other CPUs emulate bfloat16; on CUDA it was no faster in eager mode), resolved again when a saved
+        model is loaded
     :param cuda_graphs: Capture the critic update and the actor update (with its entropy-coefficient and Polyak
         updates) as CUDA graphs after 3 eager steps, and replay them: one launch instead of hundreds of small kernels
         per step, the same arithmetic (``sb3_cgac.cuda_graphs``). CUDA only (ignored with a warning elsewhere); not

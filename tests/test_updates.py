@@ -88,7 +88,7 @@ def test_auto_precision_follows_the_cpu(native, monkeypatch, tmp_path):
     assert CGAC("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]), device="cpu")._autocast_dtype is None  # default: float32
     assert resolve_update_precision("float32", th.device("cpu")) is None
     assert resolve_update_precision("bfloat16", th.device("cpu")) is th.bfloat16
-    assert resolve_update_precision("auto", th.device("cuda")) is None  # not measured on CUDA: float32
+    assert resolve_update_precision("auto", th.device("cuda")) is None  # no faster on CUDA in eager mode: float32
     model.save(tmp_path / "model")
     monkeypatch.setattr(th.cpu, "_is_avx512_bf16_supported", lambda: not native)
     loaded = CGAC.load(tmp_path / "model", device="cpu")
