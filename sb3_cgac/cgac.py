@@ -13,6 +13,7 @@ from sb3_cgac.buffers import (
 from sb3_cgac.callbacks import ENTROPY_SCHEDULES, EntropyScheduleCallback, with_entropy_schedule
 from sb3_cgac.cuda_graphs import (
     GraphedStep,
+    check_capturable,
     keep_optimizer_tensors,
     prepare_optimizers_for_capture,
     release_optimizers_from_capture,
@@ -296,6 +297,8 @@ class CGAC(OnPolicyAlgorithm):
             self.ent_coef_tensor = th.tensor(init_alpha, device=self.device)
         # Running average of the max/median ratio of dQ/da (actor-gradient outlier clipping); the paper's code starts at 100
         self.gradient_ratio_average = th.tensor(100.0, device=self.device)
+        if self._use_cuda_graphs:
+            check_capturable(self._optimizers())
 
     def _setup_update_functions(self) -> None:
         self._autocast_dtype = resolve_update_precision(self.update_precision, self.device)
@@ -307,6 +310,7 @@ class CGAC(OnPolicyAlgorithm):
             self._critic_loss_fn = th.compile(critic_loss, **compile_kwargs)
             self._actor_loss_fn = th.compile(actor_loss, **compile_kwargs)
         self._graphed_updates: tuple[GraphedStep, GraphedStep] | None = None  # captured at the first updates
+        self._use_cuda_graphs = self.cuda_graphs and self.device.type == "cuda"
         if self.cuda_graphs and self.device.type != "cuda":
             warnings.warn(
                 f"CGAC: cuda_graphs=True has no effect on device {self.device}: the updates run eagerly.", stacklevel=2
@@ -423,7 +427,7 @@ class CGAC(OnPolicyAlgorithm):
 
     def _update_steps(self) -> tuple[Callable[..., th.Tensor], Callable[..., th.Tensor]]:
         """The critic and actor update functions: the eager ones, or their CUDA graphs (made at the first call)."""
-        if not (self.cuda_graphs and self.device.type == "cuda"):
+        if not self._use_cuda_graphs:
             return self._critic_update, self._actor_update
         if self._graphed_updates is None:
             prepare_optimizers_for_capture(self._optimizers(), self.device)
@@ -510,7 +514,7 @@ class CGAC(OnPolicyAlgorithm):
         target_entropy = -self.target_entropy_beta * float(get_action_dim(self.action_space))
 
         critic_update, actor_update = self._update_steps()
-        target_entropy_tensor = th.tensor(target_entropy, device=self.device)
+        target_entropy_tensor = th.full((), target_entropy, device=self.device)
         critic_stats, actor_stats = [], []
         for _ in range(self.critic_updates_per_step * self.n_steps):
             minibatch = samples_to_tensors(self.rollout_buffer.sample(self._batch_size))
@@ -567,6 +571,7 @@ class CGAC(OnPolicyAlgorithm):
         excluded += ["_entropy_schedule_callback", "_warned_synchronised_resets", "_autocast_dtype", "_critic_loss_fn"]
         excluded += ["_actor_loss_fn", "_critic_parameters", "_actor_parameters"]
         excluded += ["_critic_target_parameters", "_actor_avg_parameters", "_graphed_updates", "_obs_keys"]
+        excluded += ["_use_cuda_graphs"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -581,9 +586,8 @@ class CGAC(OnPolicyAlgorithm):
         # plain form whatever the training used, so that they load on any device
         for name in ("actor.optimizer", "critic.optimizer", "ent_coef_optimizer"):
             for group in params.get(name, {}).get("param_groups", []):
-                group["capturable"] = False
-                if isinstance(group["lr"], th.Tensor):
-                    group["lr"] = float(group["lr"])
+                if isinstance(group["lr"], th.Tensor):  # set by prepare_optimizers_for_capture
+                    group["lr"], group["capturable"] = float(group["lr"]), False
         return params
 
     def set_parameters(

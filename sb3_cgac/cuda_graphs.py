@@ -70,9 +70,19 @@ class GraphedStep:
             raise RuntimeError(
                 f"CGAC: the CUDA graph capture of the {self.name} failed: {error}\nSomething in the step needs the host "
                 "in the middle of it (e.g. a features extractor that checks its inputs' values). Train with "
-                "cuda_graphs=False."
+                "cuda_graphs=False, in a new Python process: a failed capture can leave CUDA unusable in this one."
             ) from error
         self.graph = graph
+
+
+def check_capturable(optimizers: Iterable[th.optim.Optimizer]) -> None:
+    """Raise a ValueError that says what to do if an optimizer's steps cannot be captured in a CUDA graph."""
+    for optimizer in optimizers:
+        if "capturable" not in optimizer.defaults:
+            raise ValueError(
+                f"CGAC: cuda_graphs=True needs optimizers with a 'capturable' option; {type(optimizer).__name__} has "
+                "none. Use Adam or AdamW (the default), or cuda_graphs=False."
+            )
 
 
 def prepare_optimizers_for_capture(optimizers: Iterable[th.optim.Optimizer], device: th.device) -> None:
@@ -83,12 +93,9 @@ def prepare_optimizers_for_capture(optimizers: Iterable[th.optim.Optimizer], dev
     :param optimizers: Optimizers whose class has a ``capturable`` option (Adam, AdamW, ...)
     :param device: The device of their parameters
     """
+    optimizers = list(optimizers)
+    check_capturable(optimizers)
     for optimizer in optimizers:
-        if "capturable" not in optimizer.defaults:
-            raise ValueError(
-                f"CGAC: cuda_graphs=True needs optimizers with a 'capturable' option; {type(optimizer).__name__} has "
-                "none. Use Adam or AdamW (the default), or cuda_graphs=False."
-            )
         for group in optimizer.param_groups:
             group["capturable"] = True
             if not isinstance(group["lr"], th.Tensor):

@@ -137,6 +137,13 @@ def test_cuda_graphs_match_eager(kwargs):
 
 
 @needs_cuda
+def test_cuda_graphs_need_capturable_optimizers():
+    policy_kwargs = dict(net_arch=[16], optimizer_class=th.optim.SGD)
+    with pytest.raises(ValueError, match="SGD has none"):
+        CGAC("MlpPolicy", make_env(), device="cuda", cuda_graphs=True, policy_kwargs=policy_kwargs)
+
+
+@needs_cuda
 def test_cuda_graphs_dict_observations():
     eager, graphed = graphed_and_eager(n_envs=4, env=lambda: make_vec_env(DictObsEnv, n_envs=4, seed=0), batch_size=16)
     assert isinstance(graphed.observation_space, spaces.Dict) and graphed._graphed_updates is not None
