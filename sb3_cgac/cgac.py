@@ -473,7 +473,9 @@ class CGAC(OnPolicyAlgorithm):
         if self.actor_max_grad_norm is not None:
             grad_norm = th.nn.utils.clip_grad_norm_(self._actor_parameters, self.actor_max_grad_norm)
         else:
-            grad_norm = th.nn.utils.get_total_norm([param.grad for param in self._actor_parameters if param.grad is not None])
+            # What torch.nn.utils.get_total_norm computes (torch >= 2.6 only; this package supports torch >= 2.4)
+            grads = [param.grad for param in self._actor_parameters if param.grad is not None]
+            grad_norm = th.linalg.vector_norm(th.stack(th._foreach_norm(grads)))
         self.actor.optimizer.step()
 
         ent_coef_loss = th.zeros_like(actor_loss)  # logged only when alpha is learned
