@@ -17,6 +17,7 @@ from sb3_cgac.cuda_graphs import (
     keep_optimizer_tensors,
     prepare_optimizers_for_capture,
     release_optimizers_from_capture,
+    release_param_group,
     restore_optimizer_tensors,
     set_learning_rate,
 )
@@ -310,7 +311,6 @@ class CGAC(OnPolicyAlgorithm):
             self._critic_loss_fn = th.compile(critic_loss, **compile_kwargs)
             self._actor_loss_fn = th.compile(actor_loss, **compile_kwargs)
         self._graphed_updates: tuple[GraphedStep, GraphedStep] | None = None  # captured at the first updates
-        self._use_cuda_graphs = self.cuda_graphs and self.device.type == "cuda"
         if self.cuda_graphs and self.device.type != "cuda":
             warnings.warn(
                 f"CGAC: cuda_graphs=True has no effect on device {self.device}: the updates run eagerly.", stacklevel=2
@@ -436,6 +436,10 @@ class CGAC(OnPolicyAlgorithm):
                 GraphedStep(self._actor_update, "actor update"),
             )
         return self._graphed_updates
+
+    @property
+    def _use_cuda_graphs(self) -> bool:
+        return self.cuda_graphs and self.device.type == "cuda"
 
     def _optimizers(self) -> list[th.optim.Optimizer]:
         """The optimizers of the updates: actor, critics and, when alpha is learned, alpha's."""
@@ -573,7 +577,6 @@ class CGAC(OnPolicyAlgorithm):
         excluded += ["_entropy_schedule_callback", "_warned_synchronised_resets", "_autocast_dtype", "_critic_loss_fn"]
         excluded += ["_actor_loss_fn", "_critic_parameters", "_actor_parameters"]
         excluded += ["_critic_target_parameters", "_actor_avg_parameters", "_graphed_updates", "_obs_keys"]
-        excluded += ["_use_cuda_graphs"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -589,7 +592,7 @@ class CGAC(OnPolicyAlgorithm):
         for name in ("actor.optimizer", "critic.optimizer", "ent_coef_optimizer"):
             for group in params.get(name, {}).get("param_groups", []):
                 if isinstance(group["lr"], th.Tensor):  # set by prepare_optimizers_for_capture
-                    group["lr"], group["capturable"] = float(group["lr"]), False
+                    release_param_group(group)
         return params
 
     def set_parameters(

@@ -102,13 +102,19 @@ def prepare_optimizers_for_capture(optimizers: Iterable[th.optim.Optimizer], dev
                 group["lr"] = th.tensor(float(group["lr"]), device=device)
 
 
+def release_param_group(group: dict) -> None:
+    """Undo :func:`prepare_optimizers_for_capture` on one parameter group (or its saved copy): float learning rate,
+    ``capturable=False``."""
+    group["capturable"] = False
+    if isinstance(group["lr"], th.Tensor):
+        group["lr"] = float(group["lr"])
+
+
 def release_optimizers_from_capture(optimizers: Iterable[th.optim.Optimizer]) -> None:
     """Undo :func:`prepare_optimizers_for_capture`: float learning rates, ``capturable=False``."""
     for optimizer in optimizers:
         for group in optimizer.param_groups:
-            group["capturable"] = False
-            if isinstance(group["lr"], th.Tensor):
-                group["lr"] = float(group["lr"])
+            release_param_group(group)
 
 
 OptimizerTensors = tuple[dict[th.Tensor, dict[str, object]], list[object]]
