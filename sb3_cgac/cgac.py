@@ -28,6 +28,7 @@ from sb3_cgac.hyperparameters import (
     decayed_learning_rate,
     parse_ent_coef,
     resolve_batch_size,
+    resolve_critic_updates_per_step,
     resolve_update_precision,
     scaled_polyak_rates,
     warn_few_envs,
@@ -61,7 +62,8 @@ class CGAC(OnPolicyAlgorithm):
     ``critic_updates_per_step`` critic updates per collected step on uniform minibatches of the window, with an
     actor and entropy-coefficient update (SAC-style, Eq. 7 and 12) and the Polyak updates of both averaged copies
     every ``policy_delay`` critic updates. The defaults are the paper's schedule (one new step per iteration, a
-    32-step window, two critic updates and one actor update per step); ``n_steps == buffer_window`` is PPO-like.
+    32-step window, two critic updates per step and an actor update on every second one), with four critic updates per
+    step below 1024 envs; ``n_steps == buffer_window`` is PPO-like.
 
     :param policy: The policy model to use (MlpPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str). Use many parallel envs.
@@ -79,7 +81,9 @@ class CGAC(OnPolicyAlgorithm):
     :param buffer_window: Number of most recent steps per env kept in the buffer (paper: 32)
     :param batch_size: Minibatch size (None: the paper's 4096, or the whole window when it holds fewer
         transitions). Updates start once the window holds ``batch_size`` transitions.
-    :param critic_updates_per_step: Critic updates per collected step (paper: 2)
+    :param critic_updates_per_step: Critic updates per collected step. None: the paper's 2 from 1024 envs on, 4 with
+        fewer (each step of few envs brings little new data; with 2 the bare defaults ended in a dip on some
+        Pendulum-v1 seeds at 64 envs)
     :param policy_delay: One actor and entropy-coefficient update every ``policy_delay`` critic updates (paper: 2)
     :param gamma: Discount factor
     :param gae_lambda: lambda of the Q-GAE targets
@@ -87,9 +91,10 @@ class CGAC(OnPolicyAlgorithm):
         the paper uses 8 for SNU humanoid and AllegroHand)
     :param tau: Polyak coefficient of the target critic at every actor update (1: no averaging). None: the paper's
         tau_Q = 0.005 per 4096 new transitions, scaled to the ``m = n_envs * policy_delay / critic_updates_per_step``
-        new transitions per actor update here as ``1 - (1 - 0.005) ** sqrt(4096 / m)`` (0.039 at 64 envs)
+        new transitions per actor update here (with the resolved ``critic_updates_per_step``) as
+        ``1 - (1 - 0.005) ** sqrt(4096 / m)`` (0.055 at 64 envs with the default 4 critic updates per step)
     :param policy_tau: Polyak coefficient of the averaged actor at every actor update (1: no averaging). None: the
-        paper's tau_pi = 0.001 scaled the same way (0.008 at 64 envs)
+        paper's tau_pi = 0.001 scaled the same way (0.011 at 64 envs)
     :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
         to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
     :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12);
@@ -157,7 +162,7 @@ class CGAC(OnPolicyAlgorithm):
         n_steps: int = 1,
         buffer_window: int = 32,
         batch_size: int | None = None,
-        critic_updates_per_step: int = 2,
+        critic_updates_per_step: int | None = None,
         policy_delay: int = 2,
         gamma: float = 0.99,
         gae_lambda: float = 0.95,
@@ -266,8 +271,9 @@ class CGAC(OnPolicyAlgorithm):
         self.ent_coef_lr_schedule = None if self.ent_coef_learning_rate is None else FloatSchedule(self.ent_coef_learning_rate)
         self.set_random_seed(self.seed)
         self._batch_size = resolve_batch_size(self.batch_size, self.buffer_window, self.n_envs)
+        self._critic_updates_per_step = resolve_critic_updates_per_step(self.critic_updates_per_step, self.n_envs)
         self._tau, self._policy_tau = scaled_polyak_rates(
-            self.tau, self.policy_tau, self.n_envs, self.policy_delay, self.critic_updates_per_step
+            self.tau, self.policy_tau, self.n_envs, self.policy_delay, self._critic_updates_per_step
         )
         self._setup_update_functions()
 
@@ -497,7 +503,7 @@ class CGAC(OnPolicyAlgorithm):
 
     def _update_learning_rates(self) -> None:
         progress = self._current_progress_remaining
-        iterations = self._n_updates // (self.critic_updates_per_step * self.n_steps)
+        iterations = self._n_updates // (self._critic_updates_per_step * self.n_steps)
         actor_lr, critic_lr = (
             decayed_learning_rate(schedule(progress), self.final_learning_rate, iterations, self.lr_decay_iterations)
             for schedule in (self.lr_schedule, self.critic_lr_schedule)
@@ -522,7 +528,7 @@ class CGAC(OnPolicyAlgorithm):
         critic_update, actor_update = self._update_steps()
         target_entropy_tensor = th.full((), target_entropy, device=self.device)
         critic_stats, actor_stats = [], []
-        for _ in range(self.critic_updates_per_step * self.n_steps):
+        for _ in range(self._critic_updates_per_step * self.n_steps):
             minibatch = samples_to_tensors(self.rollout_buffer.sample(self._batch_size))
             critic_stats.append(critic_update(*minibatch))
             self._n_updates += 1

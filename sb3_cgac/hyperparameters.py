@@ -18,6 +18,12 @@ PAPER_TAU, PAPER_POLICY_TAU = 0.005, 0.001
 PAPER_TRANSITIONS_PER_ACTOR_UPDATE = 4096
 # Fewer parallel envs than this gives CGAC too little state diversity (paper Sec. 4.2 and Fig. 3a-b)
 FEW_ENVS = 16
+# critic_updates_per_step=None: the paper's 2 critic updates per collected step from MANY_ENVS envs on (its regime is
+# 4096 envs), FEW_ENVS_CRITIC_UPDATES below: a step of few envs brings little new data, and with 2 the bare defaults
+# ended in a dip on some seeds (docs/tuning.md)
+MANY_ENVS = 1024
+PAPER_CRITIC_UPDATES = 2
+FEW_ENVS_CRITIC_UPDATES = 4
 # Clamps of the learned entropy coefficient (see CGAC's ``ent_coef_monotone``)
 ENT_COEF_CLAMPS = (True, False, "above_target")
 # Precision of the networks in the updates ("auto": see ``resolve_update_precision``)
@@ -31,15 +37,12 @@ def positive_int(name: str, value: Any) -> None:
         raise ValueError(f"CGAC: {name} must be an integer >= 1, got {value!r}.")
 
 
-def check_schedule(n_steps: int, buffer_window: int, critic_updates_per_step: int, policy_delay: int) -> None:
+def check_schedule(n_steps: int, buffer_window: int, critic_updates_per_step: int | None, policy_delay: int) -> None:
     """Check the counts of CGAC's iteration; each error says what is wrong and how to fix it."""
-    for name, value in (
-        ("n_steps", n_steps),
-        ("buffer_window", buffer_window),
-        ("critic_updates_per_step", critic_updates_per_step),
-        ("policy_delay", policy_delay),
-    ):
+    for name, value in (("n_steps", n_steps), ("buffer_window", buffer_window), ("policy_delay", policy_delay)):
         positive_int(name, value)
+    if critic_updates_per_step is not None:
+        positive_int("critic_updates_per_step", critic_updates_per_step)
     if n_steps > buffer_window:
         raise ValueError(
             f"CGAC: n_steps ({n_steps}) is larger than buffer_window ({buffer_window}): each iteration writes n_steps "
@@ -60,7 +63,7 @@ def check_hyperparameters(
     *,
     n_steps: int,
     buffer_window: int,
-    critic_updates_per_step: int,
+    critic_updates_per_step: int | None,
     policy_delay: int,
     batch_size: int | None,
     gae_horizon: int | None,
@@ -219,6 +222,17 @@ def resolve_batch_size(batch_size: int | None, buffer_window: int, n_envs: int) 
             "the number of envs (batch_size=None picks min(4096, buffer size))."
         )
     return batch_size
+
+
+def resolve_critic_updates_per_step(critic_updates_per_step: int | None, n_envs: int) -> int:
+    """
+    :param critic_updates_per_step: The requested critic updates per collected step (None: the rule below)
+    :param n_envs: The number of parallel envs
+    :return: The given count, or for None the paper's 2 from ``MANY_ENVS`` envs on and 4 below
+    """
+    if critic_updates_per_step is not None:
+        return critic_updates_per_step
+    return PAPER_CRITIC_UPDATES if n_envs >= MANY_ENVS else FEW_ENVS_CRITIC_UPDATES
 
 
 def scaled_polyak_rates(

@@ -1,5 +1,6 @@
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
+from sb3_cgac.hyperparameters import resolve_critic_updates_per_step
 
 import gymnasium as gym
 import numpy as np
@@ -157,7 +158,8 @@ def snapshot(module: th.nn.Module) -> list[th.Tensor]:
 
 @pytest.mark.parametrize("tau, policy_tau", [(0.005, 0.001), (0.3, 0.5), (1.0, 1.0)])
 def test_polyak_updates(tau, policy_tau):
-    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), tau=tau, policy_tau=policy_tau, **SMALL)
+    env = make_vec_env(ConstantRewardEnv, n_envs=8, seed=0)
+    model = CGAC("MlpPolicy", env, critic_updates_per_step=2, tau=tau, policy_tau=policy_tau, **SMALL)
     model.learn(400)
     target_before, avg_before = snapshot(model.critic_target), snapshot(model.actor_avg)
     n_updates = model._n_updates
@@ -204,3 +206,25 @@ def test_default_averaging_scales_with_transitions_per_update(n_envs, critic_upd
     # Given values are used as they are
     model = CGAC("MlpPolicy", env, tau=0.3, policy_tau=0.2, **SMALL)
     assert (model._tau, model._policy_tau) == (0.3, 0.2)
+
+
+@pytest.mark.parametrize("n_envs, expected", [(16, 4), (64, 4), (1023, 4), (1024, 2), (4096, 2)])
+def test_default_critic_updates_per_step(n_envs, expected):
+    """None: the paper's 2 critic updates per collected step from 1024 envs on, 4 with fewer envs."""
+    assert resolve_critic_updates_per_step(None, n_envs) == expected
+    assert resolve_critic_updates_per_step(3, n_envs) == 3
+
+
+def test_default_critic_updates_in_training(tmp_path):
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), batch_size=64, **SMALL)
+    assert model.critic_updates_per_step is None and model._critic_updates_per_step == 4
+    # The averaging rates are scaled with the resolved count: 16 * 2 / 4 = 8 new transitions per actor update
+    assert model._tau == pytest.approx(1 - 0.995 ** np.sqrt(4096 / 8))
+    model.learn(16 * 10)  # the window holds a minibatch of 64 from the 4th step: 7 iterations of updates
+    assert model._n_updates == 7 * 4
+    # A saved None is resolved again for the env it is loaded with; a saved count is kept
+    model.save(tmp_path / "default")
+    loaded = CGAC.load(tmp_path / "default", env=make_vec_env(ConstantRewardEnv, n_envs=1024))
+    assert loaded.critic_updates_per_step is None and loaded._critic_updates_per_step == 2
+    CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), critic_updates_per_step=2, **SMALL).save(tmp_path / "two")
+    assert CGAC.load(tmp_path / "two", env=make_vec_env(ConstantRewardEnv, n_envs=16))._critic_updates_per_step == 2

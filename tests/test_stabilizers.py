@@ -96,7 +96,7 @@ def test_learning_rate_decay():
         **SMALL,
     )
     model.learn(4 * 72)  # updates start once the window holds 32 steps: 40 iterations of updates
-    iterations = model._n_updates // model.critic_updates_per_step
+    iterations = model._n_updates // model._critic_updates_per_step
     # The rate set at the start of the last iteration, before its updates
     expected = 2e-3 + (iterations - 1) / 100 * (1e-4 - 2e-3)
     assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(expected)
