@@ -133,7 +133,7 @@ def raw_and_collection(env: VecEnv, seconds: float, chunk: float) -> tuple[float
 
 def end_to_end(env: VecEnv, seconds: float, device: str, **cgac_kwargs: Any) -> dict[str, float]:
     """CGAC end to end (the paper's schedule unless ``cgac_kwargs`` say otherwise) and the split of its wall-clock."""
-    kwargs = dict(critic_updates_per_step=2, **cgac_kwargs)
+    kwargs = {"critic_updates_per_step": 2, **cgac_kwargs}
     return timed_split(CGAC("MlpPolicy", TimedVecEnv(env), device=device, seed=0, **kwargs), seconds)
 
 

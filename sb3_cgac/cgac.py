@@ -82,8 +82,8 @@ class CGAC(OnPolicyAlgorithm):
     :param batch_size: Minibatch size (None: the paper's 4096, or the whole window when it holds fewer
         transitions). Updates start once the window holds ``batch_size`` transitions.
     :param critic_updates_per_step: Critic updates per collected step. None: the paper's 2 from 1024 envs on, 4 with
-        fewer (each step of few envs brings little new data; with 2 the bare defaults ended in a dip on some
-        Pendulum-v1 seeds at 64 envs)
+        fewer (each step of few envs brings little new data; with 2 the bare defaults at 64 envs learned Pendulum-v1
+        more slowly and ended one of ten seeds in a dip)
     :param policy_delay: One actor and entropy-coefficient update every ``policy_delay`` critic updates (paper: 2)
     :param gamma: Discount factor
     :param gae_lambda: lambda of the Q-GAE targets

@@ -20,7 +20,7 @@ PAPER_TRANSITIONS_PER_ACTOR_UPDATE = 4096
 FEW_ENVS = 16
 # critic_updates_per_step=None: the paper's 2 critic updates per collected step from MANY_ENVS envs on (its regime is
 # 4096 envs), FEW_ENVS_CRITIC_UPDATES below: a step of few envs brings little new data, and with 2 the bare defaults
-# ended in a dip on some seeds (docs/tuning.md)
+# learned Pendulum-v1 more slowly and ended one of ten seeds in a dip (docs/tuning.md)
 MANY_ENVS = 1024
 PAPER_CRITIC_UPDATES = 2
 FEW_ENVS_CRITIC_UPDATES = 4
