@@ -50,7 +50,7 @@ def train_one(args: argparse.Namespace) -> None:
     runs = folder(args, args.n_envs[0]) / "runs"
     stem = runs / f"cgac_seed{args.seed}"
     env = make_vec_env(args.env, n_envs=args.n_envs[0], seed=args.seed)
-    eval_env = make_vec_env(args.env, n_envs=args.eval_envs, seed=args.seed + 10_000)
+    eval_env = make_vec_env(args.env, n_envs=args.eval_envs, seed=args.seed + 10_000, random_first_episode=False)
     kwargs = json.loads(args.overrides)
     model = CGAC("MlpPolicy", env, seed=args.seed, device=args.device, cuda_graphs=args.cuda_graphs, **kwargs)
     rows, train_rows = [COLUMNS], []
