@@ -25,7 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-COLUMNS = "run,seed,steps,seconds,mean_return"
+from sb3_cgac.compare import COLUMNS, record_train_stats, run_paths, train_stats_path, write_csv_atomically
+
 # The options a worker gets from the command line of the parent
 FORWARDED = ("env", "minutes", "steps", "eval_every", "eval_episodes", "eval_envs", "device", "out", "overrides", "name")
 
@@ -37,23 +38,22 @@ def folder(args: argparse.Namespace, n_envs: int) -> Path:
 
 def train_one(args: argparse.Namespace) -> None:
     """One (env count, seed) pair: train the bare defaults under the budget, writing evaluations as it goes."""
-    import sb3_cgac  # noqa: F401  (before torch: it sets torch's OpenMP spinning)
-    from sb3_cgac import CGAC
+    from sb3_cgac import CGAC  # sb3_cgac, imported above, set torch's OpenMP spinning before torch loaded
     from sb3_cgac.vec_env import make_vec_env
 
-    import numpy as np
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.evaluation import evaluate_policy
 
     th.set_num_threads(1)
-    runs = folder(args, args.n_envs[0]) / "runs"
-    stem = runs / f"cgac_seed{args.seed}"
+    out = folder(args, args.n_envs[0])
+    csv_path, done_path, _ = run_paths(out, "cgac", args.seed)
     env = make_vec_env(args.env, n_envs=args.n_envs[0], seed=args.seed)
     eval_env = make_vec_env(args.env, n_envs=args.eval_envs, seed=args.seed + 10_000, random_first_episode=False)
     kwargs = json.loads(args.overrides)
     model = CGAC("MlpPolicy", env, seed=args.seed, device=args.device, cuda_graphs=args.cuda_graphs, **kwargs)
-    rows, train_rows = [COLUMNS], []
+    rows: list[str] = [",".join(COLUMNS)]
+    train_rows: list[dict[str, str]] = []
 
     class Evaluate(BaseCallback):
         def _on_training_start(self) -> None:
@@ -68,15 +68,9 @@ def train_one(args: argparse.Namespace) -> None:
             self.next_evaluation = self.num_timesteps + args.eval_every
             mean_return, _ = evaluate_policy(self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)
             rows.append(f"cgac,{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}")
-            stem.with_suffix(".csv").write_text("\n".join(rows) + "\n")
-            stats = {"steps": self.num_timesteps, "seconds": round(self.seconds, 2)}
-            for key, value in self.model.logger.name_to_value.items():
-                if key.startswith("train/") and isinstance(value, int | float | np.number):
-                    stats[key.removeprefix("train/")] = float(value)
-            train_rows.append(stats)
-            keys = list(dict.fromkeys(key for row in train_rows for key in row))
-            lines = [",".join(keys)] + [",".join(f"{row.get(key, '')}" for key in keys) for row in train_rows]
-            stem.with_name(stem.name + "_train.csv").write_text("\n".join(lines) + "\n")
+            write_csv_atomically(csv_path, "\n".join(rows) + "\n")
+            stats_path = train_stats_path(out, "cgac", args.seed)
+            record_train_stats(stats_path, train_rows, self.model.logger.name_to_value, self.num_timesteps, self.seconds)
             print(
                 f"{args.n_envs[0]} envs seed {args.seed}: {self.num_timesteps} steps, {self.seconds:.0f} s, "
                 f"return {mean_return:.1f}",
@@ -96,7 +90,7 @@ def train_one(args: argparse.Namespace) -> None:
 
     evaluator = Evaluate()
     model.learn(args.steps, callback=evaluator)
-    stem.with_suffix(".json").write_text(json.dumps({"steps": model.num_timesteps, "seconds": evaluator.seconds}))
+    done_path.write_text(json.dumps({"steps": model.num_timesteps, "seconds": evaluator.seconds}))
 
 
 def main() -> None:
@@ -127,12 +121,12 @@ def main() -> None:
     while pairs or running:
         while pairs and len(running) < (args.jobs or len(pairs) + len(running)):
             n_envs, seed = pairs.pop(0)
-            runs = folder(args, n_envs) / "runs"
-            runs.mkdir(parents=True, exist_ok=True)
+            log_path = run_paths(folder(args, n_envs), "cgac", seed)[2]
+            log_path.parent.mkdir(parents=True, exist_ok=True)
             command = [sys.executable, __file__, "--worker", "--n-envs", str(n_envs), "--seed", str(seed)]
             command += [f"--{option.replace('_', '-')}={getattr(args, option)}" for option in FORWARDED]
             command += ["--cuda-graphs"] if args.cuda_graphs else []
-            with (runs / f"cgac_seed{seed}.log").open("w") as log:  # the worker keeps its own copy of the handle
+            with log_path.open("w") as log:  # the worker keeps its own copy of the handle
                 running[(n_envs, seed)] = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
         time.sleep(2)
         for pair, process in list(running.items()):
@@ -141,7 +135,7 @@ def main() -> None:
                 print(f"{pair[0]} envs seed {pair[1]}: exit code {process.returncode}", flush=True)
                 if process.returncode != 0:
                     failed.append(pair)
-                    print((folder(args, pair[0]) / "runs" / f"cgac_seed{pair[1]}.log").read_text()[-3000:], flush=True)
+                    print(run_paths(folder(args, pair[0]), "cgac", pair[1])[2].read_text()[-3000:], flush=True)
     if failed:
         raise SystemExit(f"Failed: {failed}")
 

@@ -57,6 +57,22 @@ def write_csv_atomically(path: Path, text: str) -> None:
     partial.replace(path)
 
 
+def record_train_stats(path: Path, rows: list[dict[str, str]], logged: dict[str, Any], steps: int, seconds: float) -> None:
+    """
+    Append the latest ``train/*`` values of a model's logger (``logger.name_to_value``) to ``rows`` and write them
+    all to ``path``: alpha, entropy, losses... beside each evaluation, to explain a collapse without rerunning (empty
+    before the first update, and right after a logger dump for SAC).
+    """
+    stats = {}
+    for key, value in logged.items():
+        if key.startswith("train/") and isinstance(value, int | float | np.number):
+            stats[key.removeprefix("train/")] = f"{float(value):.6g}"
+    rows.append({"steps": str(steps), "seconds": f"{seconds:.2f}", **stats})
+    keys = list(dict.fromkeys(key for row in rows for key in row))
+    lines = [",".join(keys)] + [",".join(row.get(key, "") for key in keys) for row in rows]
+    write_csv_atomically(path, "\n".join(lines) + "\n")
+
+
 # --------------------------------------------------------------------------------------------------------------
 # One (run, seed) pair, in a worker process
 # --------------------------------------------------------------------------------------------------------------
@@ -126,16 +142,8 @@ def train_one(args: argparse.Namespace) -> None:
             self.resumed = time.perf_counter()
 
         def record_train_stats(self) -> None:
-            # The latest update's statistics (alpha, entropy, losses...) beside each evaluation, to explain a
-            # collapse without rerunning; empty before the first update (and right after a logger dump, for SAC)
-            stats = {}
-            for key, value in self.model.logger.name_to_value.items():
-                if key.startswith("train/") and isinstance(value, int | float | np.number):
-                    stats[key.removeprefix("train/")] = f"{float(value):.6g}"
-            train_rows.append({"steps": str(self.num_timesteps), "seconds": f"{self.seconds:.2f}", **stats})
-            keys = list(dict.fromkeys(key for row in train_rows for key in row))
-            lines = [",".join(keys)] + [",".join(row.get(key, "") for key in keys) for row in train_rows]
-            write_csv_atomically(train_stats_path(Path(args.out), args.run, args.seed), "\n".join(lines) + "\n")
+            path = train_stats_path(Path(args.out), args.run, args.seed)
+            record_train_stats(path, train_rows, self.model.logger.name_to_value, self.num_timesteps, self.seconds)
 
         def _on_step(self) -> bool:
             if args.minutes and self.clock() >= args.minutes * 60:
