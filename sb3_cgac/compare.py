@@ -62,6 +62,12 @@ def record_train_stats(path: Path, rows: list[dict[str, str]], logged: dict[str,
     Append the latest ``train/*`` values of a model's logger (``logger.name_to_value``) to ``rows`` and write them
     all to ``path``: alpha, entropy, losses... beside each evaluation, to explain a collapse without rerunning (empty
     before the first update, and right after a logger dump for SAC).
+
+    :param path: The CSV file to (re)write, e.g. ``train_stats_path(out, run, seed)``
+    :param rows: The rows recorded so far; the new one is appended in place
+    :param logged: The model's ``logger.name_to_value``
+    :param steps: Env steps at this evaluation
+    :param seconds: Training wall-clock at this evaluation
     """
     stats = {}
     for key, value in logged.items():
