@@ -84,6 +84,23 @@ def entry_variants(entry: dict[str, Any], n_envs: list[int] | None = None) -> di
     return variants
 
 
+def unchanged_variants(entry: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """
+    The variants (other than ``cgac``) whose overrides the entry already has, so that they would rerun the entry.
+
+    :param entry: The ``cgac`` entry of the env
+    :param variants: Variant name -> overrides (``entry_variants``)
+    :return: Their names
+    """
+    # An entry without a normalize key trains without VecNormalize, as normalize: False does
+    entry = {"normalize": False, **entry}
+    return [
+        name
+        for name, overrides in variants.items()
+        if overrides and all(key in entry and entry[key] == value for key, value in overrides.items())
+    ]
+
+
 def _actor_arch(entry: dict[str, Any]) -> list[int]:
     """The actor's hidden layers in a YAML entry (the policy's default where it names none)."""
     policy_kwargs = entry.get("policy_kwargs") or {}
@@ -146,6 +163,15 @@ def main(argv: list[str] | None = None) -> None:
     unknown = [name for name in chosen if name not in variants]
     if unknown:
         parser.error(f"unknown variants {unknown}; choose from {list(variants)}")
+    same = [name for name in chosen if name in unchanged_variants(entry, variants)]
+    if same and known.variants:
+        parser.error(
+            f"variants {same} change nothing in the {known.env} entry (it already has {[variants[n] for n in same]}): "
+            "drop them, or pass --conf-dir with the entry they should change"
+        )
+    if same:
+        print(f"Leaving out {same}: the {known.env} entry already has their settings.")
+        chosen = [name for name in chosen if name not in same]
     runs = {name: {"file": "cgac", "overrides": variants[name]} for name in chosen}
     rest += ["--env", known.env, "--out", known.out or str(Path("results") / f"ablations-{known.env}")]
     rest += ["--conf-dir", known.conf_dir] if known.conf_dir else []

@@ -281,3 +281,14 @@ def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys, monkeypatch):
     argv = call["argv"]
     assert argv[argv.index("--conf-dir") + 1] == str(tmp_path) and argv[argv.index("--env") + 1] == "Pendulum-v1"
     assert argv[argv.index("--out") + 1] == str(pathlib.Path("results") / "ablations-Pendulum-v1")
+    # A variant the entry already has would rerun the entry: an error when named, left out of the default list
+    (tmp_path / "cgac.yml").write_text("Pendulum-v1:\n  n_envs: 8\n  policy_tau: 1.0\n")
+    with pytest.raises(SystemExit):
+        main(["--env", "Pendulum-v1", "--steps", "10", "--conf-dir", str(tmp_path), "--variants", "no_obs_norm"])
+    assert "variants ['no_obs_norm'] change nothing" in capsys.readouterr().err
+    calls.clear()
+    main(["--env", "Pendulum-v1", "--steps", "10", "--conf-dir", str(tmp_path)])
+    assert "Leaving out ['no_pol_avg', 'no_obs_norm']" in capsys.readouterr().out
+    (call,) = calls
+    assert "cgac" in call["runs"] and "no_val_avg" in call["runs"]
+    assert not {"no_pol_avg", "no_obs_norm"} & set(call["runs"])
