@@ -163,7 +163,8 @@ def main(argv: list[str] | None = None) -> None:
     unknown = [name for name in chosen if name not in variants]
     if unknown:
         parser.error(f"unknown variants {unknown}; choose from {list(variants)}")
-    same = [name for name in chosen if name in unchanged_variants(entry, variants)]
+    unchanged = unchanged_variants(entry, variants)
+    same = [name for name in chosen if name in unchanged]
     if same and known.variants:
         parser.error(
             f"variants {same} change nothing in the {known.env} entry (it already has {[variants[n] for n in same]}): "
