@@ -44,7 +44,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TensorDict
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule, TensorDict
 from stable_baselines3.common.utils import FloatSchedule
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -89,6 +89,12 @@ class CGAC(OnPolicyAlgorithm):
     :param gae_lambda: lambda of the Q-GAE targets
     :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window;
         the paper uses 8 for SNU humanoid and AllegroHand)
+    :param refresh_target_values: Before every iteration's updates, draw the next actions of the whole window again
+        from the averaged actor and evaluate Qbar of every step with the current target critic (not in the paper,
+        whose code evaluates Qbar once per transition, when it is added: at tau_Q = 0.005 per iteration its target
+        critic barely moves over a 32-step window, while with fewer envs and more updates per step it moves several
+        times faster and the stored values of the window's older steps go stale). Costs one forward pass of the
+        averaged actor and the target critics over the window per iteration
     :param tau: Polyak coefficient of the target critic at every actor update (1: no averaging). None: the paper's
         tau_Q = 0.005 per 4096 new transitions, scaled to the ``m = n_envs * policy_delay / critic_updates_per_step``
         new transitions per actor update here (with the resolved ``critic_updates_per_step``) as
@@ -167,6 +173,7 @@ class CGAC(OnPolicyAlgorithm):
         gamma: float = 0.99,
         gae_lambda: float = 0.95,
         gae_horizon: int | None = None,
+        refresh_target_values: bool = False,
         tau: float | None = None,
         policy_tau: float | None = None,
         ent_coef: str | float = "auto_0.1",
@@ -222,6 +229,7 @@ class CGAC(OnPolicyAlgorithm):
         self.critic_updates_per_step = critic_updates_per_step
         self.policy_delay = policy_delay
         self.gae_horizon = gae_horizon
+        self.refresh_target_values = refresh_target_values
         self.tau = tau
         self.policy_tau = policy_tau
         self.target_entropy_beta = target_entropy_beta
@@ -261,6 +269,7 @@ class CGAC(OnPolicyAlgorithm):
         names += ["policy_tau", "gamma", "gae_lambda", "lr_decay_iterations", "final_learning_rate", "max_grad_norm"]
         names += ["behaviour_kl_coef", "ent_coef", "ent_coef_monotone", "entropy_schedule", "entropy_schedule_kwargs"]
         names += ["critic_loss", "update_precision", "compile_updates", "cuda_graphs", "clip_actor_gradient_outliers"]
+        names += ["refresh_target_values"]
         check_hyperparameters(**{name: getattr(self, name) for name in names}, entropy_schedules=tuple(ENTROPY_SCHEDULES))
 
     def _setup_model(self) -> None:
@@ -516,9 +525,13 @@ class CGAC(OnPolicyAlgorithm):
             lr = self.ent_coef_lr_schedule(progress) if self.ent_coef_lr_schedule else 10 * self.lr_schedule(progress)
             set_learning_rate(self.ent_coef_optimizer, lr)
 
+    def _sample_next_actions(self, obs: PyTorchObs) -> th.Tensor:
+        return self.actor_avg.sample(obs, 1)[0]
+
     def train(self) -> None:
         """Value targets of the new steps, then critic, actor, entropy-coefficient and Polyak updates on minibatches."""
-        self.rollout_buffer.compute_returns(self.policy.target_q_value)
+        sampler = self._sample_next_actions if self.refresh_target_values else None
+        self.rollout_buffer.compute_returns(self.policy.target_q_value, next_action_sampler=sampler)
         if self.rollout_buffer.n_transitions < self._batch_size:
             return  # the window does not hold a minibatch yet
         self.policy.set_training_mode(True)

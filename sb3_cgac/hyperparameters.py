@@ -85,6 +85,7 @@ def check_hyperparameters(
     compile_updates: Any,
     cuda_graphs: Any = False,
     clip_actor_gradient_outliers: bool = False,
+    refresh_target_values: bool = False,
 ) -> None:
     """
     Check CGAC's constructor arguments that do not depend on the env (see ``CGAC`` for their meaning); each error
@@ -121,6 +122,8 @@ def check_hyperparameters(
         raise ValueError(
             f"CGAC: compile_updates must be True, False or a dict of torch.compile keyword arguments, got {compile_updates!r}."
         )
+    if not isinstance(refresh_target_values, bool):
+        raise ValueError(f"CGAC: refresh_target_values must be True or False, got {refresh_target_values!r}.")
     check_cuda_graphs(cuda_graphs, compile_updates, clip_actor_gradient_outliers)
 
 

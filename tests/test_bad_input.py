@@ -73,6 +73,7 @@ def test_unbounded_box():
         (dict(update_precision="float16"), r"update_precision 'float16'; choose one of \('auto', 'float32', 'bfloat16'\)"),
         (dict(compile_updates="yes"), "compile_updates must be True, False or a dict"),
         (dict(cuda_graphs="yes"), "cuda_graphs must be True or False"),
+        (dict(refresh_target_values=1), "refresh_target_values must be True or False"),
         (dict(cuda_graphs=True, compile_updates=True), "cuda_graphs=True and compile_updates cannot be combined"),
         (dict(cuda_graphs=True, clip_actor_gradient_outliers=True), "cuda_graphs=True does not support clip_actor"),
         (dict(policy_kwargs=dict(mean_init_scale=-0.01)), "mean_init_scale must be a finite number >= 0"),

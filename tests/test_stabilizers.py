@@ -222,6 +222,20 @@ def test_behaviour_kl_coef_keeps_the_actor_near_the_averaged_actor():
     assert gap(100.0) < 0.5 * gap(0.0)
 
 
+@pytest.mark.parametrize("refresh", [False, True])
+def test_refresh_target_values(refresh):
+    env = make_vec_env("Pendulum-v1", n_envs=4)
+    model = CGAC("MlpPolicy", env, refresh_target_values=refresh, buffer_window=8, batch_size=16, **SMALL)
+    model.learn(4 * 12)
+    before = model.rollout_buffer.next_actions.clone()
+    model.learn(4 * 2, reset_num_timesteps=False)
+    buffer = model.rollout_buffer
+    # The two newest steps are new either way; the six older ones keep their next actions unless refreshed
+    older = [(buffer.pos + k) % buffer.buffer_window for k in range(buffer.buffer_window - 2)]
+    changed = (buffer.next_actions[older] != before[older]).any(dim=-1)
+    assert changed.all() if refresh else not changed.any()
+
+
 def test_synchronised_resets_warning_is_given_once():
     # Two synchronised time limits (steps 200 and 400 of every env): one warning per model, not one per episode
     kwargs = dict(policy_kwargs=dict(net_arch=[8]), buffer_window=4, seed=0)
