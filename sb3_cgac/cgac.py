@@ -32,6 +32,7 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     scaled_polyak_rates,
     warn_few_envs,
+    with_predict_actor,
 )
 from sb3_cgac.losses import actor_loss, behaviour_kl, critic_loss, outlier_clipped_actor_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
@@ -101,6 +102,11 @@ class CGAC(OnPolicyAlgorithm):
         ``1 - (1 - 0.005) ** sqrt(4096 / m)`` (0.055 at 64 envs with the default 4 critic updates per step)
     :param policy_tau: Polyak coefficient of the averaged actor at every actor update (1: no averaging). None: the
         paper's tau_pi = 0.001 scaled the same way (0.011 at 64 envs)
+    :param predict_tau: Polyak coefficient, at every actor update, of a third copy of the actor that ``predict()``
+        (evaluation, deployment) acts with; training is unchanged: the averaged actor of ``policy_tau`` still
+        collects the data and draws the next actions. None (default): ``predict()`` acts with the averaged actor.
+        A slow rate (the paper's tau_pi, 0.001) averages the trained actor over the last thousands of updates, where
+        the fast averaged actor of entries tuned for few envs follows its swings
     :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
         to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
     :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12);
@@ -176,6 +182,7 @@ class CGAC(OnPolicyAlgorithm):
         refresh_target_values: bool = False,
         tau: float | None = None,
         policy_tau: float | None = None,
+        predict_tau: float | None = None,
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
@@ -232,6 +239,7 @@ class CGAC(OnPolicyAlgorithm):
         self.refresh_target_values = refresh_target_values
         self.tau = tau
         self.policy_tau = policy_tau
+        self.predict_tau = predict_tau
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
         self.entropy_schedule = entropy_schedule
@@ -269,7 +277,7 @@ class CGAC(OnPolicyAlgorithm):
         names += ["policy_tau", "gamma", "gae_lambda", "lr_decay_iterations", "final_learning_rate", "max_grad_norm"]
         names += ["behaviour_kl_coef", "ent_coef", "ent_coef_monotone", "entropy_schedule", "entropy_schedule_kwargs"]
         names += ["critic_loss", "update_precision", "compile_updates", "cuda_graphs", "clip_actor_gradient_outliers"]
-        names += ["refresh_target_values"]
+        names += ["refresh_target_values", "predict_tau"]
         check_hyperparameters(**{name: getattr(self, name) for name in names}, entropy_schedules=tuple(ENTROPY_SCHEDULES))
 
     def _setup_model(self) -> None:
@@ -298,6 +306,7 @@ class CGAC(OnPolicyAlgorithm):
             gae_horizon=self.gae_horizon,
             **self.rollout_buffer_kwargs,
         )
+        self.policy_kwargs = with_predict_actor(self.policy_kwargs, self.predict_tau)
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
         )
@@ -343,6 +352,8 @@ class CGAC(OnPolicyAlgorithm):
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
         self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
         self._actor_avg_parameters: list[th.Tensor] = list(self.actor_avg.parameters())
+        actor_predict = self.policy.actor_predict
+        self._actor_predict_parameters: list[th.Tensor] = [] if actor_predict is None else list(actor_predict.parameters())
 
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         if self.entropy_schedule is not None:
@@ -509,6 +520,8 @@ class CGAC(OnPolicyAlgorithm):
         # target <- (1 - tau) * target + tau * online, all parameters of a network in one foreach call
         th._foreach_lerp_(self._critic_target_parameters, self._critic_parameters, self._tau)
         th._foreach_lerp_(self._actor_avg_parameters, self._actor_parameters, self._policy_tau)
+        if self.predict_tau is not None:
+            th._foreach_lerp_(self._actor_predict_parameters, self._actor_parameters, self.predict_tau)
 
     def _update_learning_rates(self) -> None:
         progress = self._current_progress_remaining
@@ -595,7 +608,8 @@ class CGAC(OnPolicyAlgorithm):
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs"]
         excluded += ["_entropy_schedule_callback", "_warned_synchronised_resets", "_autocast_dtype", "_critic_loss_fn"]
         excluded += ["_actor_loss_fn", "_critic_parameters", "_actor_parameters"]
-        excluded += ["_critic_target_parameters", "_actor_avg_parameters", "_graphed_updates", "_obs_keys"]
+        excluded += ["_critic_target_parameters", "_actor_avg_parameters", "_actor_predict_parameters", "_graphed_updates"]
+        excluded += ["_obs_keys"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -51,8 +51,10 @@ def check_schedule(n_steps: int, buffer_window: int, critic_updates_per_step: in
         )
 
 
-def check_rates(tau: float | None, policy_tau: float | None, gamma: float, gae_lambda: float) -> None:
-    for name, value in (("tau", tau), ("policy_tau", policy_tau)):
+def check_rates(
+    tau: float | None, policy_tau: float | None, gamma: float, gae_lambda: float, predict_tau: float | None = None
+) -> None:
+    for name, value in (("tau", tau), ("policy_tau", policy_tau), ("predict_tau", predict_tau)):
         if value is not None and not 0.0 < value <= 1.0:
             raise ValueError(f"CGAC: {name} must be in (0, 1] (1 turns the averaging off), got {value}.")
     if not 0.0 <= gamma <= 1.0 or not 0.0 <= gae_lambda <= 1.0:
@@ -86,6 +88,7 @@ def check_hyperparameters(
     cuda_graphs: Any = False,
     clip_actor_gradient_outliers: bool = False,
     refresh_target_values: bool = False,
+    predict_tau: float | None = None,
 ) -> None:
     """
     Check CGAC's constructor arguments that do not depend on the env (see ``CGAC`` for their meaning); each error
@@ -97,7 +100,7 @@ def check_hyperparameters(
     for name, value in (("batch_size", batch_size), ("gae_horizon", gae_horizon)):
         if value is not None:
             positive_int(name, value)
-    check_rates(tau, policy_tau, gamma, gae_lambda)
+    check_rates(tau, policy_tau, gamma, gae_lambda, predict_tau)
     positive_int("lr_decay_iterations", lr_decay_iterations)
     if final_learning_rate is not None and not final_learning_rate >= 0:
         raise ValueError(f"CGAC: final_learning_rate must be >= 0 or None (no decay), got {final_learning_rate}.")
@@ -125,6 +128,26 @@ def check_hyperparameters(
     if not isinstance(refresh_target_values, bool):
         raise ValueError(f"CGAC: refresh_target_values must be True or False, got {refresh_target_values!r}.")
     check_cuda_graphs(cuda_graphs, compile_updates, clip_actor_gradient_outliers)
+
+
+def with_predict_actor(policy_kwargs: dict[str, Any], predict_tau: float | None) -> dict[str, Any]:
+    """
+    The policy keyword arguments with ``predict_actor`` set as ``predict_tau`` requires: the policy keeps the
+    copy of the actor that ``predict()`` acts with exactly when CGAC averages one.
+
+    :param policy_kwargs: The policy keyword arguments given by the user (or loaded with a model)
+    :param predict_tau: CGAC's ``predict_tau``
+    :return: The policy keyword arguments, with ``predict_actor`` when ``predict_tau`` is given
+    """
+    wanted = predict_tau is not None
+    given = policy_kwargs.get("predict_actor", wanted)
+    if given != wanted:
+        raise ValueError(
+            f"CGAC: policy_kwargs has predict_actor={given!r} but predict_tau is {predict_tau!r}: the copy of the actor "
+            "that predict() acts with is averaged at the rate predict_tau. Remove predict_actor from policy_kwargs "
+            "and set predict_tau (None: predict() acts with the averaged actor)."
+        )
+    return {**policy_kwargs, "predict_actor": True} if wanted else policy_kwargs
 
 
 def check_cuda_graphs(cuda_graphs: Any, compile_updates: Any, clip_actor_gradient_outliers: bool) -> None:

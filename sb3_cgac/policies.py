@@ -239,8 +239,8 @@ class CGACPolicy(BasePolicy):
     """
     Policy class for CGAC: an actor and twin Q critics that are trained, plus a Polyak-averaged copy of
     each (the averaged actor acts in the environment and samples next actions, the target critic gives
-    the value targets; paper Sec. 4.2, "Policy-Value Coupling"). All four live here so that
-    ``policy.save()``/``load()`` keep them.
+    the value targets; paper Sec. 4.2, "Policy-Value Coupling"), and optionally a slower average of the actor that
+    ``predict()`` acts with (``predict_actor``). They all live here so that ``policy.save()``/``load()`` keep them.
 
     :param observation_space: Observation space
     :param action_space: Action space
@@ -270,10 +270,13 @@ class CGACPolicy(BasePolicy):
     :param critic_float32_output: Whether the critics' output layers run in float32 when the updates run under
         bfloat16 autocast (``update_precision``); False rounds the Q-values to bfloat16 like the hidden layers.
         No effect on float32 updates
+    :param predict_actor: Whether to keep a third copy of the actor, ``actor_predict``, that ``predict()`` acts with
+        (set by CGAC's ``predict_tau``, which averages it); False: ``predict()`` acts with the averaged actor
     """
 
     actor: Actor
     actor_avg: Actor
+    actor_predict: Actor | None
     critic: CGACCritic
     critic_target: CGACCritic
 
@@ -299,6 +302,7 @@ class CGACPolicy(BasePolicy):
         critic_layer_norm: bool = False,
         stack_critics: bool = False,
         critic_float32_output: bool = True,
+        predict_actor: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -328,6 +332,7 @@ class CGACPolicy(BasePolicy):
         self.use_xavier_init = use_xavier_init
         self.share_features_extractor = share_features_extractor
         self.normalize_observations = normalize_observations
+        self.predict_actor = predict_actor
         self.obs_normalizer: RunningObsNormalizer | None = None
         if normalize_observations:
             if not isinstance(self.observation_space, spaces.Box):
@@ -383,9 +388,17 @@ class CGACPolicy(BasePolicy):
         self.actor_avg.load_state_dict(self.actor.state_dict())
         self.critic_target = self.make_critic(features_extractor=None)
         self.critic_target.load_state_dict(self.critic.state_dict())
-        for averaged in (self.actor_avg, self.critic_target):
-            averaged.requires_grad_(False)
-            averaged.set_training_mode(False)
+        self.actor_predict = None
+        if self.predict_actor:
+            # Its initial weights are overwritten: building it must not draw from the RNG, so that a seed trains the
+            # same networks with and without it
+            with th.random.fork_rng(devices=[]):
+                self.actor_predict = self.make_actor()
+            self.actor_predict.load_state_dict(self.actor.state_dict())
+        for averaged in (self.actor_avg, self.critic_target, self.actor_predict):
+            if averaged is not None:
+                averaged.requires_grad_(False)
+                averaged.set_training_mode(False)
 
     def _optimizer_kwargs(self) -> dict[str, Any]:
         # Adam's fused implementation (CPU and CUDA) takes a fraction of the per-tensor loop's time
@@ -414,6 +427,7 @@ class CGACPolicy(BasePolicy):
                 critic_layer_norm=self.critic_kwargs["layer_norm"],
                 stack_critics=self.critic_kwargs["stacked"],
                 critic_float32_output=self.critic_kwargs["float32_output"],
+                predict_actor=self.predict_actor,
             )
         )
         return data
@@ -447,8 +461,10 @@ class CGACPolicy(BasePolicy):
         return self._predict(obs, deterministic=deterministic)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        # The averaged actor is the behaviour policy (paper Sec. 4.2): predict() acts as training rollouts do
-        return self.actor_avg(observation, deterministic)
+        # The averaged actor is the behaviour policy (paper Sec. 4.2): predict() acts as training rollouts do, unless
+        # a slower average is kept for it (CGAC's predict_tau)
+        actor = self.actor_avg if self.actor_predict is None else self.actor_predict
+        return actor(observation, deterministic)
 
     @th.no_grad()
     def target_q_value(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:

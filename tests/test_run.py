@@ -40,6 +40,7 @@ def make_env(n_envs: int = 4, env_id: str = "Pendulum-v1", **kwargs):
         dict(update_precision="bfloat16", policy_kwargs=dict(net_arch=[16], critic_float32_output=False, stack_critics=True)),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_kwargs=dict(foreach=True))),
         dict(refresh_target_values=True, n_steps=2),
+        dict(predict_tau=0.001),
     ],
 )
 def test_run(kwargs):

@@ -113,6 +113,25 @@ def test_policy_save_load(tmp_path):
     assert np.array_equal(model.policy.predict(obs, deterministic=True)[0], policy.predict(obs, deterministic=True)[0])
 
 
+def test_save_load_predict_actor(tmp_path):
+    """The slower average that predict() acts with (predict_tau) is saved, loaded and averaged on after a load."""
+    env = make_env()
+    model = CGAC("MlpPolicy", env, predict_tau=0.01, **SMALL)
+    model.learn(400)
+    model.save(tmp_path / "slow")
+    loaded = CGAC.load(tmp_path / "slow", env=env)
+    assert loaded.predict_tau == 0.01 and loaded.policy.actor_predict is not None
+    for name, value in state_of(model).items():
+        assert th.equal(value, state_of(loaded)[name]), name
+    obs = env.reset()
+    assert np.array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    before = [param.clone() for param in loaded.policy.actor_predict.parameters()]
+    updates = loaded._n_updates
+    loaded.learn(400, reset_num_timesteps=False)
+    assert loaded._n_updates > updates
+    assert any(not th.equal(old, new) for old, new in zip(before, loaded.policy.actor_predict.parameters(), strict=True))
+
+
 def test_save_load_observation_normalizer(tmp_path):
     """The running statistics are saved with the model, and all four networks keep sharing one normalizer."""
     env = make_env()

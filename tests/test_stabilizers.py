@@ -236,6 +236,39 @@ def test_refresh_target_values(refresh):
     assert changed.all() if refresh else not changed.any()
 
 
+def test_predict_tau_leaves_training_unchanged():
+    """The slower average for predict() is only read by predict(): the same seed trains the same networks."""
+
+    def train(predict_tau):
+        model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4, seed=0), predict_tau=predict_tau, **SMALL)
+        model.learn(4 * 60)
+        return model
+
+    plain, slow = train(None), train(0.05)
+    assert plain.policy.actor_predict is None and slow.policy.actor_predict is not None
+    slow_state = slow.policy.state_dict()
+    for name, value in plain.policy.state_dict().items():
+        assert th.equal(value, slow_state[name]), name
+    # predict() acts with the slow average, which differs from the averaged actor that collected the data
+    obs = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
+    with th.no_grad():
+        expected = slow.policy.actor_predict(th.as_tensor(obs), deterministic=True).numpy()
+        behaviour = slow.actor_avg(th.as_tensor(obs), deterministic=True).numpy()
+    assert np.allclose(slow.predict(obs, deterministic=True)[0], slow.policy.unscale_action(expected))
+    assert not np.allclose(expected, behaviour)
+
+
+def test_predict_tau_averages_the_actor():
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4, seed=0), predict_tau=0.2, **SMALL)
+    model.learn(4 * 20)
+    assert model.policy.actor_predict is not None
+    before = [param.clone() for param in model.policy.actor_predict.parameters()]
+    model._polyak_updates()
+    for old, new, trained in zip(before, model.policy.actor_predict.parameters(), model.actor.parameters(), strict=True):
+        assert th.allclose(new, old + 0.2 * (trained - old), atol=1e-7)
+        assert not new.requires_grad
+
+
 def test_synchronised_resets_warning_is_given_once():
     # Two synchronised time limits (steps 200 and 400 of every env): one warning per model, not one per episode
     kwargs = dict(policy_kwargs=dict(net_arch=[8]), buffer_window=4, seed=0)
