@@ -106,7 +106,8 @@ class CGAC(OnPolicyAlgorithm):
         (evaluation, deployment) acts with; training is unchanged: the averaged actor of ``policy_tau`` still
         collects the data and draws the next actions. None (default): ``predict()`` acts with the averaged actor.
         A slow rate (the paper's tau_pi, 0.001) averages the trained actor over the last thousands of updates, where
-        the fast averaged actor of entries tuned for few envs follows its swings
+        the fast averaged actor of entries tuned for few envs follows its swings; as it starts from the untrained
+        actor (weight ``(1 - predict_tau) ** n`` after ``n`` actor updates), it is meant for long runs
     :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
         to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
     :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12);
