@@ -27,6 +27,8 @@ from pathlib import Path
 
 from sb3_cgac.compare import COLUMNS, record_train_stats, run_paths, train_stats_path, write_csv_atomically
 
+import numpy as np
+
 # The options a worker gets from the command line of the parent
 FORWARDED = ("env", "minutes", "steps", "eval_every", "eval_episodes", "eval_envs", "device", "out", "overrides", "name")
 
@@ -66,8 +68,11 @@ def train_one(args: argparse.Namespace) -> None:
         def evaluate(self) -> None:
             self.seconds = self.clock()
             self.next_evaluation = self.num_timesteps + args.eval_every
-            mean_return, _ = evaluate_policy(self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)
-            rows.append(f"cgac,{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}")
+            returns, lengths = evaluate_policy(
+                self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True, return_episode_rewards=True
+            )
+            mean_return = float(np.mean(returns))
+            rows.append(f"cgac,{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f},{np.mean(lengths):.1f}")
             write_csv_atomically(csv_path, "\n".join(rows) + "\n")
             stats_path = train_stats_path(out, "cgac", args.seed)
             record_train_stats(stats_path, train_rows, self.model.logger.name_to_value, self.num_timesteps, self.seconds)

@@ -75,9 +75,14 @@ class CGAC(OnPolicyAlgorithm):
         as in the paper's code)
     :param final_learning_rate: Learning rate reached by a linear decay of the actor and critic learning rates
         over ``lr_decay_iterations`` iterations (the authors' code: 2e-3 to 1e-4 over 20k); None: no decay. Alpha's
-        learning rate does not decay, as in the authors' code.
+        learning rate does not decay, as in the authors' code, unless ``decay_ent_coef_learning_rate`` is set.
     :param lr_decay_iterations: Length of that decay in iterations (one iteration collects ``n_steps`` steps of
         every env and runs its updates)
+    :param decay_ent_coef_learning_rate: Scale alpha's learning rate by the factor of the actor rate's decay (not in
+        the authors' code, where alpha's rate keeps its initial value, 200x the final actor rate with their values).
+        Adam moves log alpha by about its learning rate per update whatever the entropy error, so an undecayed rate
+        lets alpha wind down by orders of magnitude late in training, and climb back as fast. Needs
+        ``final_learning_rate`` and a learned alpha
     :param n_steps: Number of new steps collected per env in each iteration
     :param buffer_window: Number of most recent steps per env kept in the buffer (paper: 32)
     :param batch_size: Minibatch size (None: the paper's 4096, or the whole window when it holds fewer
@@ -172,6 +177,7 @@ class CGAC(OnPolicyAlgorithm):
         ent_coef_learning_rate: float | Schedule | None = None,
         final_learning_rate: float | None = None,
         lr_decay_iterations: int = 20_000,
+        decay_ent_coef_learning_rate: bool = False,
         n_steps: int = 1,
         buffer_window: int = 32,
         batch_size: int | None = None,
@@ -232,6 +238,7 @@ class CGAC(OnPolicyAlgorithm):
         self.ent_coef_learning_rate = ent_coef_learning_rate
         self.final_learning_rate = final_learning_rate
         self.lr_decay_iterations = lr_decay_iterations
+        self.decay_ent_coef_learning_rate = decay_ent_coef_learning_rate
         self.buffer_window = buffer_window
         self.batch_size = batch_size
         self.critic_updates_per_step = critic_updates_per_step
@@ -278,7 +285,7 @@ class CGAC(OnPolicyAlgorithm):
         names += ["policy_tau", "gamma", "gae_lambda", "lr_decay_iterations", "final_learning_rate", "max_grad_norm"]
         names += ["behaviour_kl_coef", "ent_coef", "ent_coef_monotone", "entropy_schedule", "entropy_schedule_kwargs"]
         names += ["critic_loss", "update_precision", "compile_updates", "cuda_graphs", "clip_actor_gradient_outliers"]
-        names += ["refresh_target_values", "predict_tau"]
+        names += ["refresh_target_values", "predict_tau", "decay_ent_coef_learning_rate"]
         check_hyperparameters(**{name: getattr(self, name) for name in names}, entropy_schedules=tuple(ENTROPY_SCHEDULES))
 
     def _setup_model(self) -> None:
@@ -537,7 +544,10 @@ class CGAC(OnPolicyAlgorithm):
         self.logger.record("train/critic_learning_rate", critic_lr)
         if self.ent_coef_optimizer is not None:
             lr = self.ent_coef_lr_schedule(progress) if self.ent_coef_lr_schedule else 10 * self.lr_schedule(progress)
+            if self.decay_ent_coef_learning_rate and self.lr_schedule(progress) > 0:
+                lr *= actor_lr / self.lr_schedule(progress)  # the decay's factor at this iteration
             set_learning_rate(self.ent_coef_optimizer, lr)
+            self.logger.record("train/ent_coef_learning_rate", lr)
 
     def _sample_next_actions(self, obs: PyTorchObs) -> th.Tensor:
         return self.actor_avg.sample(obs, 1)[0]

@@ -16,8 +16,9 @@ again: a long comparison can be split over several calls.
 The budget is env steps (``--steps``) or training wall-clock minutes (``--minutes``; evaluation time is not counted,
 and the entries' ``n_timesteps`` do not stop a run early). Evaluations are deterministic, on separate envs, every
 ``--eval-every`` of the budget (a fraction of the steps, or minutes). Outputs in ``--out``: ``evaluations.csv``
-(run, seed, steps, seconds, mean_return), ``return_vs_steps.png`` and ``return_vs_time.png`` (mean with a 95%
-bootstrap band over seeds; the IQM with rliable from 3 seeds on) and ``summary.md`` (final and best return,
+(run, seed, steps, seconds, mean_return, mean_length: the mean episode length, which tells early terminations from
+poor behaviour; empty for runs made before it was recorded), ``return_vs_steps.png`` and ``return_vs_time.png`` (mean
+with a 95% bootstrap band over seeds; the IQM with rliable from 3 seeds on) and ``summary.md`` (final and best return,
 steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's). ``--success-key success``
 adds each evaluation's success rate (the info key at each episode's last step, e.g. Adroit's ``success``).
 Beside each pair's evaluations, ``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the
@@ -35,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-COLUMNS = ["run", "seed", "steps", "seconds", "mean_return"]
+COLUMNS = ["run", "seed", "steps", "seconds", "mean_return", "mean_length"]
 
 
 def run_paths(out: Path, run: str, seed: int) -> tuple[Path, Path, Path]:
@@ -137,10 +138,17 @@ def train_one(args: argparse.Namespace) -> None:
                 if args.success_key and locals_["done"]:
                     successes.append(bool(locals_["info"].get(args.success_key, False)))
 
-            mean_return, _ = evaluate_policy(
-                self.model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True, callback=record_success
+            returns, lengths = evaluate_policy(
+                self.model,
+                eval_env,
+                n_eval_episodes=args.eval_episodes,
+                deterministic=True,
+                callback=record_success,
+                return_episode_rewards=True,
             )
-            row = f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f}"
+            row = (
+                f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{np.mean(returns):.3f},{np.mean(lengths):.1f}"
+            )
             rows.append(row + (f",{np.mean(successes) if successes else 0.0:.3f}\n" if args.success_key else "\n"))
             header = ",".join(COLUMNS + (["success_rate"] if args.success_key else []))
             write_csv_atomically(csv_path, header + "\n" + "".join(rows))

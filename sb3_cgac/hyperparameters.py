@@ -89,6 +89,7 @@ def check_hyperparameters(
     clip_actor_gradient_outliers: bool = False,
     refresh_target_values: bool = False,
     predict_tau: float | None = None,
+    decay_ent_coef_learning_rate: bool = False,
 ) -> None:
     """
     Check CGAC's constructor arguments that do not depend on the env (see ``CGAC`` for their meaning); each error
@@ -108,7 +109,15 @@ def check_hyperparameters(
         raise ValueError(f"CGAC: max_grad_norm must be > 0, got {max_grad_norm}.")
     if not behaviour_kl_coef >= 0:
         raise ValueError(f"CGAC: behaviour_kl_coef must be >= 0 (0 turns the penalty off), got {behaviour_kl_coef}.")
-    parse_ent_coef(ent_coef)
+    learn_alpha, _ = parse_ent_coef(ent_coef)
+    if not isinstance(decay_ent_coef_learning_rate, bool):
+        raise ValueError(f"CGAC: decay_ent_coef_learning_rate must be True or False, got {decay_ent_coef_learning_rate!r}.")
+    if decay_ent_coef_learning_rate and (final_learning_rate is None or not learn_alpha):
+        raise ValueError(
+            "CGAC: decay_ent_coef_learning_rate=True follows the decay of the actor's learning rate and scales a learned "
+            f"alpha's rate, but final_learning_rate={final_learning_rate} and ent_coef={ent_coef!r}; set "
+            "final_learning_rate (e.g. 1e-4) and ent_coef='auto', or leave decay_ent_coef_learning_rate=False."
+        )
     check_choice(
         "ent_coef_monotone",
         ent_coef_monotone,

@@ -19,7 +19,7 @@ def test_defaults_at_scale_tiny_budget(tmp_path):
     for n_envs in (16, 32):
         runs = tmp_path / f"Pendulum-v1-defaults-{n_envs}-envs-cpu-fast-tau" / "runs"
         rows = np.genfromtxt(runs / "cgac_seed0.csv", delimiter=",", names=True, dtype=None, encoding=None)
-        assert list(rows.dtype.names) == ["run", "seed", "steps", "seconds", "mean_return"]
+        assert list(rows.dtype.names) == ["run", "seed", "steps", "seconds", "mean_return", "mean_length"]
         assert rows["steps"][0] == 0 and rows["steps"][-1] >= 640  # before training, on the grid, and at the end
         assert np.all(rows["mean_return"] < 0)  # Pendulum-v1's returns
         done = json.loads((runs / "cgac_seed0.json").read_text())

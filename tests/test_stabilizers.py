@@ -107,11 +107,45 @@ def test_learning_rate_decay():
     assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
 
 
+def test_ent_coef_learning_rate_decay(tmp_path):
+    """decay_ent_coef_learning_rate scales alpha's rate by the actor rate's decay factor: 10x the actor's throughout."""
+    kwargs = dict(learning_rate=2e-3, final_learning_rate=1e-4, lr_decay_iterations=100, **SMALL)
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), decay_ent_coef_learning_rate=True, **kwargs)
+    model.learn(4 * 72)
+    actor_lr = model.actor.optimizer.param_groups[0]["lr"]
+    assert actor_lr < 2e-3
+    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(10 * actor_lr)
+    assert model.logger.name_to_value["train/ent_coef_learning_rate"] == pytest.approx(10 * actor_lr)
+    # A separate alpha rate decays by the same factor
+    model = CGAC(
+        "MlpPolicy",
+        make_vec_env("Pendulum-v1", n_envs=4),
+        decay_ent_coef_learning_rate=True,
+        ent_coef_learning_rate=3e-3,
+        **kwargs,
+    )
+    model.learn(4 * 72)
+    factor = model.actor.optimizer.param_groups[0]["lr"] / 2e-3
+    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * factor)
+    # The option is saved with the model: a loaded model goes on decaying alpha's rate
+    model.save(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model", env=make_vec_env("Pendulum-v1", n_envs=4))
+    assert loaded.decay_ent_coef_learning_rate is True
+    loaded.learn(4 * 8, reset_num_timesteps=False)
+    factor = loaded.actor.optimizer.param_groups[0]["lr"] / 2e-3
+    assert loaded.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * factor)
+
+
 def test_bad_learning_rate_decay():
     with pytest.raises(ValueError, match="final_learning_rate"):
         CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=-1.0)
     with pytest.raises(ValueError, match="lr_decay_iterations"):
         CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=1e-4, lr_decay_iterations=0)
+    with pytest.raises(ValueError, match="set final_learning_rate"):
+        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), decay_ent_coef_learning_rate=True)
+    with pytest.raises(ValueError, match="ent_coef='auto'"):
+        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=1e-4, ent_coef=0.1,
+             decay_ent_coef_learning_rate=True)  # fmt: skip
 
 
 def test_random_first_episode_length():

@@ -147,7 +147,7 @@ def test_compare_script_tiny_budget(tmp_path):
     for name in ("evaluations.csv", "return_vs_steps.png", "return_vs_time.png", "summary.md"):
         assert (out / name).exists(), name
     rows = (out / "evaluations.csv").read_text().splitlines()
-    assert rows[0] == "run,seed,steps,seconds,mean_return"
+    assert rows[0] == "run,seed,steps,seconds,mean_return,mean_length"
     assert {row.split(",")[0] for row in rows[1:]} == {"cgac", "ppo", "sac"}
     table = (out / "summary.md").read_text()
     assert "best of ppo's final returns" in table
@@ -199,8 +199,8 @@ def test_compare_success_rate(tmp_path):
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     rows = [row.split(",") for row in (out / "evaluations.csv").read_text().splitlines()]
-    assert rows[0] == ["run", "seed", "steps", "seconds", "mean_return", "success_rate"]
-    assert len(rows) >= 3 and all(0.0 <= float(row[5]) <= 1.0 for row in rows[1:])
+    assert rows[0] == ["run", "seed", "steps", "seconds", "mean_return", "mean_length", "success_rate"]
+    assert len(rows) >= 3 and all(0.0 <= float(row[6]) <= 1.0 for row in rows[1:])
     assert "final success rate" in (out / "summary.md").read_text()
 
 
