@@ -75,7 +75,8 @@ def train_one(args: argparse.Namespace) -> None:
             rows.append(f"cgac,{args.seed},{self.num_timesteps},{self.seconds:.2f},{mean_return:.3f},{np.mean(lengths):.1f}")
             write_csv_atomically(csv_path, "\n".join(rows) + "\n")
             stats_path = train_stats_path(out, "cgac", args.seed)
-            record_train_stats(stats_path, train_rows, self.model.logger.name_to_value, self.num_timesteps, self.seconds)
+            logged, episodes = self.model.logger.name_to_value, self.model.ep_info_buffer or ()
+            record_train_stats(stats_path, train_rows, logged, self.num_timesteps, self.seconds, episodes)
             print(
                 f"{args.n_envs[0]} envs seed {args.seed}: {self.num_timesteps} steps, {self.seconds:.0f} s, "
                 f"return {mean_return:.1f}",

@@ -22,7 +22,8 @@ with a 95% bootstrap band over seeds; the IQM with rliable from 3 seeds on) and 
 steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's). ``--success-key success``
 adds each evaluation's success rate (the info key at each episode's last step, e.g. Adroit's ``success``).
 Beside each pair's evaluations, ``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the
-model's logger at each evaluation (CGAC: alpha as ``ent_coef``, ``entropy``, the losses...).
+model's logger at each evaluation (CGAC: alpha as ``ent_coef``, ``entropy``, the losses...) and the mean return and
+length of the training envs' latest episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``).
 """
 
 import argparse
@@ -31,6 +32,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -58,22 +60,36 @@ def write_csv_atomically(path: Path, text: str) -> None:
     partial.replace(path)
 
 
-def record_train_stats(path: Path, rows: list[dict[str, str]], logged: dict[str, Any], steps: int, seconds: float) -> None:
+def record_train_stats(
+    path: Path,
+    rows: list[dict[str, str]],
+    logged: dict[str, Any],
+    steps: int,
+    seconds: float,
+    episodes: Iterable[dict[str, Any]] = (),
+) -> None:
     """
     Append the latest ``train/*`` values of a model's logger (``logger.name_to_value``) to ``rows`` and write them
     all to ``path``: alpha, entropy, losses... beside each evaluation, to explain a collapse without rerunning (empty
-    before the first update, and right after a logger dump for SAC).
+    before the first update, and right after a logger dump for SAC). With ``episodes``, the mean return and length
+    of the training envs' latest episodes as well (``rollout_return``, ``rollout_length``): the stochastic policy's
+    episodes beside the deterministic evaluations, e.g. whether both end early by termination.
 
     :param path: The CSV file to (re)write, e.g. ``train_stats_path(out, run, seed)``
     :param rows: The rows recorded so far; the new one is appended in place
     :param logged: The model's ``logger.name_to_value``
     :param steps: Env steps at this evaluation
     :param seconds: Training wall-clock at this evaluation
+    :param episodes: The model's ``ep_info_buffer`` (the Monitor infos ``r`` and ``l`` of its latest episodes)
     """
     stats = {}
     for key, value in logged.items():
         if key.startswith("train/") and isinstance(value, int | float | np.number):
             stats[key.removeprefix("train/")] = f"{float(value):.6g}"
+    finished = list(episodes)
+    if finished:
+        stats["rollout_return"] = f"{np.mean([episode['r'] for episode in finished]):.6g}"
+        stats["rollout_length"] = f"{np.mean([episode['l'] for episode in finished]):.6g}"
     rows.append({"steps": str(steps), "seconds": f"{seconds:.2f}", **stats})
     keys = list(dict.fromkeys(key for row in rows for key in row))
     lines = [",".join(keys)] + [",".join(row.get(key, "") for key in keys) for row in rows]
@@ -157,7 +173,8 @@ def train_one(args: argparse.Namespace) -> None:
 
         def record_train_stats(self) -> None:
             path = train_stats_path(Path(args.out), args.run, args.seed)
-            record_train_stats(path, train_rows, self.model.logger.name_to_value, self.num_timesteps, self.seconds)
+            logged, episodes = self.model.logger.name_to_value, self.model.ep_info_buffer or ()
+            record_train_stats(path, train_rows, logged, self.num_timesteps, self.seconds, episodes)
 
         def _on_step(self) -> bool:
             if args.minutes and self.clock() >= args.minutes * 60:

@@ -187,6 +187,21 @@ def test_compare_records_train_stats(tmp_path):
     assert int(stats[-1]["n_updates"]) == 9 * 4
 
 
+def test_record_train_stats_rollout_episodes(tmp_path):
+    """The training envs' latest episodes (SB3's ep_info_buffer) give each row's rollout_return and rollout_length."""
+    from sb3_cgac.compare import record_train_stats
+
+    path, rows = tmp_path / "train.csv", []
+    record_train_stats(path, rows, {"train/ent_coef": 0.5, "rollout/ep_rew_mean": 1.0}, 0, 0.0)
+    episodes = [{"r": 10.0, "l": 1000, "t": 1.0}, {"r": -2.0, "l": 40, "t": 2.0}]
+    record_train_stats(path, rows, {"train/ent_coef": 0.25}, 128, 1.5, episodes)
+    stats = list(csv.DictReader(path.open()))
+    assert list(stats[0]) == ["steps", "seconds", "ent_coef", "rollout_return", "rollout_length"]
+    assert stats[0]["rollout_return"] == "" and stats[0]["rollout_length"] == ""
+    assert float(stats[1]["rollout_return"]) == 4.0 and float(stats[1]["rollout_length"]) == 520.0
+    assert float(stats[1]["ent_coef"]) == 0.25
+
+
 def test_compare_success_rate(tmp_path):
     """--success-key records the share of evaluation episodes whose last step has the info key set (Adroit's success)."""
     pytest.importorskip("gymnasium_robotics")
