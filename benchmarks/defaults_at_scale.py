@@ -103,7 +103,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Pendulum-v1")
     parser.add_argument("--n-envs", type=int, nargs="+", default=[1024, 4096])
-    parser.add_argument("--seeds", type=int, default=3, help="seeds 0 .. seeds-1 of each env count")
+    parser.add_argument("--seeds", type=int, default=3, help="how many seeds of each env count")
+    parser.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + seeds - 1")
     parser.add_argument("--minutes", type=float, default=6.0, help="training wall-clock per run (evaluations not counted)")
     parser.add_argument("--steps", type=int, default=10**12, help="env steps per run (the other budget)")
     parser.add_argument("--eval-every", type=int, default=163_840, help="env steps between evaluations")
@@ -121,7 +122,8 @@ def main() -> None:
     if args.worker:
         train_one(args)
         return
-    pairs = [(n_envs, seed) for n_envs in args.n_envs for seed in range(args.seeds)]
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    pairs = [(n_envs, seed) for n_envs in args.n_envs for seed in seeds]
     running: dict[tuple[int, int], subprocess.Popen] = {}
     failed = []
     while pairs or running:

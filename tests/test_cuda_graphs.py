@@ -119,6 +119,14 @@ def graphed_and_eager(n_envs: int = 8, env=None, **kwargs) -> tuple[CGAC, CGAC]:
         # Nearly no action noise: the comparison does not depend on the graphs drawing the eager run's random numbers
         dict(policy_kwargs=dict(net_arch=[16], log_std_init=-10.0)),
         dict(ent_coef=0.05, policy_delay=1, final_learning_rate=1e-4, lr_decay_iterations=5),
+        # The Ant-v5 recipe's options: alpha's rate decayed with the actor's, a third (predict) average, fresh targets
+        dict(
+            final_learning_rate=1e-4,
+            lr_decay_iterations=5,
+            decay_ent_coef_learning_rate=True,
+            predict_tau=0.01,
+            refresh_target_values=True,
+        ),
         dict(ent_coef_monotone=True, behaviour_kl_coef=0.1, policy_kwargs=dict(net_arch=[16], normalize_observations=True)),
         dict(update_precision="bfloat16", policy_kwargs=dict(net_arch=[16], stack_critics=True, critic_layer_norm=True)),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(foreach=True))),
@@ -134,6 +142,11 @@ def test_cuda_graphs_match_eager(kwargs):
         th.testing.assert_close(actual, expected, rtol=1e-4, atol=1e-5, msg=lambda text, name=name: f"{name}: {text}")
     lr = graphed.actor.optimizer.param_groups[0]["lr"]
     assert float(lr) == pytest.approx(eager.actor.optimizer.param_groups[0]["lr"])
+    if eager.log_ent_coef is not None:  # alpha and its (possibly decayed) learning rate
+        assert graphed.log_ent_coef is not None and graphed.ent_coef_optimizer is not None
+        th.testing.assert_close(graphed.log_ent_coef.detach(), eager.log_ent_coef.detach(), rtol=1e-4, atol=1e-5)
+        lr = graphed.ent_coef_optimizer.param_groups[0]["lr"]
+        assert float(lr) == pytest.approx(eager.ent_coef_optimizer.param_groups[0]["lr"])
 
 
 @needs_cuda
