@@ -87,9 +87,12 @@ class CGAC(OnPolicyAlgorithm):
     :param buffer_window: Number of most recent steps per env kept in the buffer (paper: 32)
     :param batch_size: Minibatch size (None: the paper's 4096, or the whole window when it holds fewer
         transitions). Updates start once the window holds ``batch_size`` transitions.
-    :param critic_updates_per_step: Critic updates per collected step. None: the paper's 2 from 1024 envs on, 4 with
-        fewer (each step of few envs brings little new data; with 2 the bare defaults at 64 envs learned Pendulum-v1
-        more slowly and ended one of ten seeds in a dip)
+    :param critic_updates_per_step: Critic updates per collected step. None: 4 below 1024 envs (each step of few
+        envs brings little new data; with the paper's 2 the bare defaults at 64 envs learned Pendulum-v1 more slowly
+        and ended one of ten seeds in a dip); from 1024 envs on, the smallest count, at least the paper's 2, that
+        samples each collected transition 8 times on average (``ceil(8 * n_envs / batch_size)``: with the batch of
+        4096, 2 at 1024 envs, 4 at 2048, 8 at 4096, where the paper's 2 did not learn Pendulum-v1). Pass 2 for the
+        paper's count
     :param policy_delay: One actor and entropy-coefficient update every ``policy_delay`` critic updates (paper: 2)
     :param gamma: Discount factor
     :param gae_lambda: lambda of the Q-GAE targets
@@ -296,7 +299,9 @@ class CGAC(OnPolicyAlgorithm):
         self.ent_coef_lr_schedule = None if self.ent_coef_learning_rate is None else FloatSchedule(self.ent_coef_learning_rate)
         self.set_random_seed(self.seed)
         self._batch_size = resolve_batch_size(self.batch_size, self.buffer_window, self.n_envs)
-        self._critic_updates_per_step = resolve_critic_updates_per_step(self.critic_updates_per_step, self.n_envs)
+        self._critic_updates_per_step = resolve_critic_updates_per_step(
+            self.critic_updates_per_step, self.n_envs, self._batch_size
+        )
         self._tau, self._policy_tau = scaled_polyak_rates(
             self.tau, self.policy_tau, self.n_envs, self.policy_delay, self._critic_updates_per_step
         )

@@ -3,6 +3,7 @@ CGAC's hyperparameter rules: the checks of what a user passes, and how the paper
 envs) become the values used at another number of envs. Pure functions, so that scripts use the same rules.
 """
 
+import math
 import warnings
 from typing import Any
 
@@ -18,12 +19,15 @@ PAPER_TAU, PAPER_POLICY_TAU = 0.005, 0.001
 PAPER_TRANSITIONS_PER_ACTOR_UPDATE = 4096
 # Fewer parallel envs than this gives CGAC too little state diversity (paper Sec. 4.2 and Fig. 3a-b)
 FEW_ENVS = 16
-# critic_updates_per_step=None: the paper's 2 critic updates per collected step from MANY_ENVS envs on (its regime is
-# 4096 envs), FEW_ENVS_CRITIC_UPDATES below: a step of few envs brings little new data, and with 2 the bare defaults
-# learned Pendulum-v1 more slowly and ended one of ten seeds in a dip (docs/tuning.md)
+# critic_updates_per_step=None: FEW_ENVS_CRITIC_UPDATES below MANY_ENVS envs (a step of few envs brings little new
+# data, and with the paper's 2 the bare defaults learned Pendulum-v1 more slowly and ended one of ten seeds in a dip);
+# from MANY_ENVS envs on, enough updates that each collected transition is sampled at least SAMPLES_PER_TRANSITION
+# times (updates * batch_size / n_envs), never fewer than the paper's 2: with the paper's batch of 4096 that is the
+# paper's 2 at 1024 envs, 4 at 2048 and 8 at 4096, where the paper's 2 left Pendulum-v1 unlearned (docs/tuning.md)
 MANY_ENVS = 1024
 PAPER_CRITIC_UPDATES = 2
 FEW_ENVS_CRITIC_UPDATES = 4
+SAMPLES_PER_TRANSITION = 8
 # Clamps of the learned entropy coefficient (see CGAC's ``ent_coef_monotone``)
 ENT_COEF_CLAMPS = (True, False, "above_target")
 # Precision of the networks in the updates ("auto": see ``resolve_update_precision``)
@@ -259,15 +263,19 @@ def resolve_batch_size(batch_size: int | None, buffer_window: int, n_envs: int) 
     return batch_size
 
 
-def resolve_critic_updates_per_step(critic_updates_per_step: int | None, n_envs: int) -> int:
+def resolve_critic_updates_per_step(critic_updates_per_step: int | None, n_envs: int, batch_size: int) -> int:
     """
     :param critic_updates_per_step: The requested critic updates per collected step (None: the rule below)
     :param n_envs: The number of parallel envs
-    :return: The given count, or for None the paper's 2 from ``MANY_ENVS`` envs on and 4 below
+    :param batch_size: The resolved minibatch size
+    :return: The given count, or for None: 4 below ``MANY_ENVS`` envs; from there on the smallest count (at least
+        the paper's 2) that samples each collected transition ``SAMPLES_PER_TRANSITION`` times on average
     """
     if critic_updates_per_step is not None:
         return critic_updates_per_step
-    return PAPER_CRITIC_UPDATES if n_envs >= MANY_ENVS else FEW_ENVS_CRITIC_UPDATES
+    if n_envs < MANY_ENVS:
+        return FEW_ENVS_CRITIC_UPDATES
+    return max(PAPER_CRITIC_UPDATES, math.ceil(SAMPLES_PER_TRANSITION * n_envs / batch_size))
 
 
 def scaled_polyak_rates(

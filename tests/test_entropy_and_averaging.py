@@ -208,11 +208,30 @@ def test_default_averaging_scales_with_transitions_per_update(n_envs, critic_upd
     assert (model._tau, model._policy_tau) == (0.3, 0.2)
 
 
-@pytest.mark.parametrize("n_envs, expected", [(16, 4), (64, 4), (1023, 4), (1024, 2), (4096, 2)])
-def test_default_critic_updates_per_step(n_envs, expected):
-    """None: the paper's 2 critic updates per collected step from 1024 envs on, 4 with fewer envs."""
-    assert resolve_critic_updates_per_step(None, n_envs) == expected
-    assert resolve_critic_updates_per_step(3, n_envs) == 3
+@pytest.mark.parametrize(
+    "n_envs, batch_size, expected",
+    [
+        (16, 512, 4),
+        (64, 2048, 4),
+        (1023, 4096, 4),
+        (1023, 64, 4),  # the sampling floor starts at 1024 envs
+        (1024, 4096, 2),
+        (1500, 4096, 3),
+        (2048, 4096, 4),
+        (4096, 4096, 8),
+        (4096, 8192, 4),
+        (16384, 4096, 32),
+        (1024, 8192, 2),  # never fewer than the paper's 2
+    ],
+)
+def test_default_critic_updates_per_step(n_envs, batch_size, expected):
+    """None: 4 below 1024 envs; from 1024 on, each collected transition sampled 8 times (at least the paper's 2)."""
+    updates = resolve_critic_updates_per_step(None, n_envs, batch_size)
+    assert updates == expected
+    if n_envs >= 1024:
+        assert updates * batch_size / n_envs >= 8
+        assert updates == 2 or (updates - 1) * batch_size / n_envs < 8, "the smallest count that reaches the floor"
+    assert resolve_critic_updates_per_step(3, n_envs, batch_size) == 3
 
 
 def test_default_critic_updates_in_training(tmp_path):
@@ -222,9 +241,10 @@ def test_default_critic_updates_in_training(tmp_path):
     assert model._tau == pytest.approx(1 - 0.995 ** np.sqrt(4096 / 8))
     model.learn(16 * 10)  # the window holds a minibatch of 64 from the 4th step: 7 iterations of updates
     assert model._n_updates == 7 * 4
-    # A saved None is resolved again for the env it is loaded with; a saved count is kept
-    model.save(tmp_path / "default")
-    loaded = CGAC.load(tmp_path / "default", env=make_vec_env(ConstantRewardEnv, n_envs=1024))
-    assert loaded.critic_updates_per_step is None and loaded._critic_updates_per_step == 2
+    # A saved None is resolved again for the env it is loaded with (batch_size None: 4096 there); a saved count is kept
+    CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), **SMALL).save(tmp_path / "default")
+    for n_envs, expected in ((1024, 2), (4096, 8)):
+        loaded = CGAC.load(tmp_path / "default", env=make_vec_env(ConstantRewardEnv, n_envs=n_envs))
+        assert loaded.critic_updates_per_step is None and loaded._critic_updates_per_step == expected
     CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), critic_updates_per_step=2, **SMALL).save(tmp_path / "two")
     assert CGAC.load(tmp_path / "two", env=make_vec_env(ConstantRewardEnv, n_envs=16))._critic_updates_per_step == 2
