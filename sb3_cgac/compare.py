@@ -232,7 +232,7 @@ def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], re
 
     out = Path(args.out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
-    pairs = [(run, seed) for run in runs for seed in range(args.seeds)]
+    pairs = [(run, seed) for run in runs for seed in range(args.first_seed, args.first_seed + args.seeds)]
     pending = [pair for pair in pairs if not run_paths(out, *pair)[1].exists()]
     print(f"{len(pairs) - len(pending)} of {len(pairs)} (run, seed) pairs already done; training {len(pending)}.")
     budget = args.minutes * 60 if args.minutes else args.steps
@@ -257,7 +257,7 @@ def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], re
             used = finished * budget + sum(min(progress_of(out, *pair, bool(args.minutes)), budget) for pair in running)
             bar.update(used - bar.n)
             bar.set_postfix_str(", ".join(f"{run} s{seed}" for run, seed in running), refresh=False)
-    summarise(out, list(runs), args.seeds, args.threshold, references)
+    summarise(out, list(runs), args.first_seed + args.seeds, args.threshold, references)
 
 
 def load_results(out: Path, runs: list[str], seeds: int) -> tuple[Any, dict[tuple[str, int], dict[str, float]]]:
@@ -441,7 +441,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", required=True, help="env id (the YAML entries of this id are used)")
     parser.add_argument("--runs", nargs="+", default=["cgac", "ppo", "sac"], help="hyperparameter files by name")
-    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=3, help="seeds 0 .. seeds-1 of every run (with --first-seed: see there)")
+    parser.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="train seeds first-seed .. first-seed + seeds - 1 only (the summary: every finished seed up to there)",
+    )
     budget = parser.add_mutually_exclusive_group(required=True)
     budget.add_argument("--steps", type=int, help="budget of env steps per run")
     budget.add_argument("--minutes", type=float, help="budget of training wall-clock minutes per run")
@@ -483,7 +489,7 @@ def main(
         return
     runs = runs if runs is not None else {run: {"file": run} for run in args.runs}
     if args.summary_only:
-        summarise(Path(args.out), list(runs), args.seeds, args.threshold, references)
+        summarise(Path(args.out), list(runs), args.first_seed + args.seeds, args.threshold, references)
     else:
         run_comparison(args, runs, references)
 

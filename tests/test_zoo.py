@@ -161,6 +161,15 @@ def test_compare_script_tiny_budget(tmp_path):
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert again.returncode == 0 and "3 of 3 (run, seed) pairs already done" in again.stdout
+    # --first-seed trains only the seeds from there on; the summary covers every finished seed
+    more = subprocess.run(
+        [sys.executable, "-m", "sb3_cgac.compare", "--env", "Pendulum-v1", "--runs", "cgac", "--seeds", "1",
+         "--first-seed", "2", "--steps", "1000", "--eval-episodes", "2", "--eval-envs", "2", "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert more.returncode == 0 and "0 of 1 (run, seed) pairs already done" in more.stdout, more.stderr[-3000:]
+    assert (out / "runs" / "cgac_seed2.csv").exists() and not (out / "runs" / "cgac_seed1.csv").exists()
+    assert "| cgac | 2 |" in (out / "summary.md").read_text()
 
 
 def test_compare_records_train_stats(tmp_path):
