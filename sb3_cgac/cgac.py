@@ -32,6 +32,7 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     scaled_polyak_rates,
     warn_few_envs,
+    warn_many_critic_updates,
     with_predict_actor,
 )
 from sb3_cgac.losses import actor_loss, behaviour_kl, critic_loss, outlier_clipped_actor_loss, update_log_ent_coef
@@ -91,8 +92,8 @@ class CGAC(OnPolicyAlgorithm):
         envs brings little new data; with the paper's 2 the bare defaults at 64 envs learned Pendulum-v1 more slowly
         and ended one of ten seeds in a dip); from 1024 envs on, the smallest count, at least the paper's 2, that
         samples each collected transition 8 times on average (``ceil(8 * n_envs / batch_size)``: with the batch of
-        4096, 2 at 1024 envs, 4 at 2048, 8 at 4096, where the paper's 2 did not learn Pendulum-v1). Pass 2 for the
-        paper's count
+        4096, 2 at 1024 envs, 4 at 2048, 8 at 4096, where the paper's 2 did not learn Pendulum-v1; a warning when a
+        ``batch_size`` below 4096 makes it larger than that). Pass 2 for the paper's count
     :param policy_delay: One actor and entropy-coefficient update every ``policy_delay`` critic updates (paper: 2)
     :param gamma: Discount factor
     :param gae_lambda: lambda of the Q-GAE targets
@@ -276,6 +277,7 @@ class CGAC(OnPolicyAlgorithm):
         if _init_setup_model:
             self._setup_model()
             warn_few_envs(self.n_envs)
+            warn_many_critic_updates(self.critic_updates_per_step, self.n_envs, self.batch_size, self._critic_updates_per_step)
 
     @staticmethod
     def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:

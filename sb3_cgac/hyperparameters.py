@@ -306,6 +306,24 @@ def decayed_learning_rate(
     return learning_rate + fraction * (final_learning_rate - learning_rate)
 
 
+def warn_many_critic_updates(critic_updates_per_step: int | None, n_envs: int, batch_size: int | None, resolved: int) -> None:
+    """
+    Warn when ``critic_updates_per_step=None`` resolves to more updates per step than the paper's batch would need,
+    because the ``batch_size`` the user gave is small for the number of envs (at the user's constructor call).
+    """
+    if critic_updates_per_step is not None or batch_size is None or batch_size >= PAPER_BATCH_SIZE:
+        return
+    if resolved > resolve_critic_updates_per_step(None, n_envs, PAPER_BATCH_SIZE):
+        warnings.warn(
+            f"CGAC: critic_updates_per_step=None resolves to {resolved} critic updates per env step at n_envs={n_envs} "
+            f"with batch_size={batch_size}, so that each collected transition is sampled {SAMPLES_PER_TRANSITION} times "
+            "on average; every step then costs that many updates. Raise batch_size (the paper's 4096, or None) or set "
+            "critic_updates_per_step (the paper's 2).",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def warn_few_envs(n_envs: int) -> None:
     """Warn that CGAC learns poorly from fewer than ``FEW_ENVS`` parallel envs (at the user's constructor call)."""
     if n_envs < FEW_ENVS:

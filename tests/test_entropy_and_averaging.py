@@ -1,3 +1,5 @@
+import warnings
+
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
 from sb3_cgac.hyperparameters import resolve_critic_updates_per_step
@@ -232,6 +234,34 @@ def test_default_critic_updates_per_step(n_envs, batch_size, expected):
         assert updates * batch_size / n_envs >= 8
         assert updates == 2 or (updates - 1) * batch_size / n_envs < 8, "the smallest count that reaches the floor"
     assert resolve_critic_updates_per_step(3, n_envs, batch_size) == 3
+
+
+@pytest.mark.parametrize(
+    "n_envs, batch_size, critic_updates_per_step, warns",
+    [
+        (1024, 512, None, True),  # 16 updates per step, where the paper's batch needs 2
+        (1024, 4096, None, False),
+        (1024, None, None, False),  # None picks the batch: no warning for a choice the user did not make
+        (1024, 512, 2, False),  # a given count is the user's choice
+        (512, 64, None, False),  # below 1024 envs the count is 4 whatever the batch
+    ],
+)
+def test_small_batch_at_many_envs_warns(tmp_path, n_envs, batch_size, critic_updates_per_step, warns):
+    env = make_vec_env(ConstantRewardEnv, n_envs=n_envs)
+
+    def update_count_warnings(make_model):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            make_model().save(tmp_path / "model")
+        return [str(warning.message) for warning in caught if "critic_updates_per_step=None resolves" in str(warning.message)]
+
+    kwargs = dict(batch_size=batch_size, critic_updates_per_step=critic_updates_per_step, **SMALL)
+    messages = update_count_warnings(lambda: CGAC("MlpPolicy", env, **kwargs))
+    assert len(messages) == int(warns)
+    if warns:
+        assert "16 critic updates per env step at n_envs=1024 with batch_size=512" in messages[0]
+    # Loading does not warn again: the warning is for the user's constructor call
+    assert update_count_warnings(lambda: CGAC.load(tmp_path / "model", env=env)) == []
 
 
 def test_default_critic_updates_in_training(tmp_path):
