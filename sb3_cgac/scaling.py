@@ -10,6 +10,10 @@ with ``:<n>`` for the number of action dimensions when the env is not installed 
 environment). Folders of one env joined by ``+`` (``docs/results/Ant-v5-no-policy-averaging+docs/results/Ant-v5``)
 take each run from the first folder that has it: a new CGAC entry beside the PPO runs of an older comparison.
 
+A run of ``--runs`` may be a series drawn from differently named runs: ``cgac=cgac_gamma0995,cgac`` plots, for each
+folder, the first of ``cgac_gamma0995`` and ``cgac`` that it has, as ``cgac`` (entries tuned in variant folders under
+their own run names beside the older entries' ``cgac``); the table names the run taken where it is not the series.
+
 For each run (``--runs``) and seed, the time to a fraction ``f`` of the seed's own best is the training wall-clock
 of its first evaluation at or above ``first + f * (best - first)``, ``first`` being the evaluation before training
 (so negative returns work); the median over seeds is plotted against the action dimensions, and tabulated. A seed
@@ -78,19 +82,35 @@ def read_evaluations(argument: str) -> tuple[str, Any]:
     return env_ids.pop(), pd.concat(frames, ignore_index=True)
 
 
+def parse_series(runs: list[str]) -> dict[str, list[str]]:
+    """``name`` or ``name=run[,run...]`` of ``--runs``: each series and the run names it may take, in order."""
+    series: dict[str, list[str]] = {}
+    for argument in runs:
+        name, equals, sources = argument.partition("=")
+        names = [source for source in sources.split(",") if source] if equals else [name]
+        if not name or not names:
+            raise ValueError(f"--runs {argument!r}: write a run name, or <series>=<run>[,<run>...].")
+        if name in series:
+            raise ValueError(f"--runs names the series {name!r} twice: give it once, with all its run names.")
+        series[name] = names
+    return series
+
+
 def scaling_table(folders: list[str], runs: list[str], fraction: float) -> list[dict[str, Any]]:
-    """One row per (env, run): env id, action dimensions, seeds, median seconds to the fraction."""
+    """One row per (env, series): env id, action dimensions, run taken, seeds, median seconds to the fraction."""
     rows = []
     for argument in folders:
         joined, _, dims_text = argument.partition(":")
         env_id, results = read_evaluations(joined)
         dims = int(dims_text) if dims_text else action_dims(env_id)
-        for run in runs:
-            seeds = [frame for _, frame in results[results["run"] == run].groupby("seed")]
-            if not seeds:
+        available = set(results["run"])
+        for name, sources in parse_series(runs).items():
+            run = next((source for source in sources if source in available), None)
+            if run is None:
                 continue
+            seeds = [frame for _, frame in results[results["run"] == run].groupby("seed")]
             times = [time_to_fraction(frame, fraction) for frame in seeds]
-            rows.append(dict(env=env_id, dims=dims, run=run, seeds=len(seeds), seconds=float(np.median(times))))
+            rows.append(dict(env=env_id, dims=dims, run=name, source=run, seeds=len(seeds), seconds=float(np.median(times))))
     return sorted(rows, key=lambda row: (row["dims"], row["env"], row["run"]))
 
 
@@ -113,35 +133,37 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument(
         "folders", nargs="+", help="comparison folders named after their env id: <folder>[+<folder>...][:<dims>]"
     )
-    parser.add_argument("--runs", nargs="+", default=["cgac", "ppo"], help="runs to compare")
+    parser.add_argument(
+        "--runs", nargs="+", default=["cgac", "ppo"], help="runs to compare: <run>, or <series>=<run>[,<run>...]"
+    )
     parser.add_argument("--fraction", type=float, default=0.8, help="fraction of each seed's best improvement")
     parser.add_argument("--out", default="results/scaling", help="output stem: <out>.png and <out>.md")
     args = parser.parse_args(argv)
     if not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}.")
     rows = scaling_table(args.folders, args.runs, args.fraction)
+    names = list(parse_series(args.runs))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    plot_scaling(rows, args.runs, args.fraction, out.with_suffix(".png"))
+    plot_scaling(rows, names, args.fraction, out.with_suffix(".png"))
 
     def minutes(seconds: float) -> str:
         return f"{seconds / 60:.1f}" if np.isfinite(seconds) else "not reached"
+
+    def cell(row: dict[str, Any]) -> str:
+        taken = f", {row['source']}" if row["source"] != row["run"] else ""
+        return f"{minutes(row['seconds'])} ({row['seeds']} seed{'s' * (row['seeds'] != 1)}{taken})"
 
     lines = [
         f"Minutes of training to {args.fraction:.0%} of each seed's best improvement over its first evaluation "
         "(median over seeds).",
         "",
-        "| env | action dims | " + " | ".join(args.runs) + " |",
-        "| --- | --- | " + " | ".join("---" for _ in args.runs) + " |",
+        "| env | action dims | " + " | ".join(names) + " |",
+        "| --- | --- | " + " | ".join("---" for _ in names) + " |",
     ]
     for env_id in dict.fromkeys(row["env"] for row in rows):
         of_env = {row["run"]: row for row in rows if row["env"] == env_id}
-        cells = [
-            f"{minutes(of_env[run]['seconds'])} ({of_env[run]['seeds']} seed{'s' * (of_env[run]['seeds'] != 1)})"
-            if run in of_env
-            else "-"
-            for run in args.runs
-        ]
+        cells = [cell(of_env[name]) if name in of_env else "-" for name in names]
         dims = next(iter(of_env.values()))["dims"]
         lines.append(f"| {env_id} | {dims} | " + " | ".join(cells) + " |")
     table = "\n".join(lines)

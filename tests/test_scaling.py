@@ -63,6 +63,26 @@ def test_joined_folders(tmp_path):
         main([str(tmp_path / "scaling"), "--out", str(tmp_path / "other")])
 
 
+def test_series_of_differently_named_runs(tmp_path):
+    # Entries tuned in variant folders under their own run names, plotted as one series with the older entries' cgac
+    for name, rows in {
+        "Pendulum-v1": evaluations("cgac", 0, [0, 0, 10]) + evaluations("cgac_new", 0, [0, 10, 10]),
+        "Hopper-v5": evaluations("cgac", 0, [0, 0, 0, 10]) + evaluations("ppo", 0, [0, 10]),
+    }.items():
+        (tmp_path / name).mkdir()
+        pd.DataFrame(rows).to_csv(tmp_path / name / "evaluations.csv", index=False)
+    folders = [str(tmp_path / "Pendulum-v1"), f"{tmp_path / 'Hopper-v5'}:3"]
+    table = main([*folders, "--runs", "cgac=cgac_new,cgac", "ppo", "--out", str(tmp_path / "scaling")])
+    lines = table.splitlines()
+    assert lines[2] == "| env | action dims | cgac | ppo |"
+    # The first run name a folder has is taken, and named where it is not the series
+    assert lines[4] == "| Pendulum-v1 | 1 | 1.0 (1 seed, cgac_new) | - |"
+    assert lines[5] == "| Hopper-v5 | 3 | 3.0 (1 seed) | 1.0 (1 seed) |"
+    for runs, message in ([["cgac", "cgac=cgac_new"], "twice"], [["cgac="], "write a run name"], [["=x"], "write a run name"]):
+        with pytest.raises(ValueError, match=message):
+            main([*folders, "--runs", *runs, "--out", str(tmp_path / "other")])
+
+
 def test_fraction_is_checked(tmp_path):
     with pytest.raises(ValueError, match="--fraction"):
         main([str(tmp_path), "--fraction", "1.5"])
