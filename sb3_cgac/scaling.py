@@ -96,7 +96,7 @@ def parse_series(runs: list[str]) -> dict[str, list[str]]:
     return series
 
 
-def scaling_table(folders: list[str], runs: list[str], fraction: float) -> list[dict[str, Any]]:
+def scaling_table(folders: list[str], series: dict[str, list[str]], fraction: float) -> list[dict[str, Any]]:
     """One row per (env, series): env id, action dimensions, run taken, seeds, median seconds to the fraction."""
     rows = []
     for argument in folders:
@@ -104,7 +104,7 @@ def scaling_table(folders: list[str], runs: list[str], fraction: float) -> list[
         env_id, results = read_evaluations(joined)
         dims = int(dims_text) if dims_text else action_dims(env_id)
         available = set(results["run"])
-        for name, sources in parse_series(runs).items():
+        for name, sources in series.items():
             run = next((source for source in sources if source in available), None)
             if run is None:
                 continue
@@ -141,8 +141,10 @@ def main(argv: list[str] | None = None) -> str:
     args = parser.parse_args(argv)
     if not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}.")
-    rows = scaling_table(args.folders, args.runs, args.fraction)
-    names = list(parse_series(args.runs))
+    # Parsed before any folder is read, so that a malformed --runs fails first
+    series = parse_series(args.runs)
+    names = list(series)
+    rows = scaling_table(args.folders, series, args.fraction)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     plot_scaling(rows, names, args.fraction, out.with_suffix(".png"))
