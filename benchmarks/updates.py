@@ -17,6 +17,10 @@ of a step (forward ``2 * batch * in * out`` per layer, a backward with weight gr
 through the critics in CGAC's actor update, which needs no weight gradients, once that). With ``--e2e``, the
 candidates are CGAC's update paths and the baseline training from the envs' ``hyperparams/cgac.yml`` entries (each
 revision its own file, HalfCheetah-v5 on envpool), and the table shows env steps per second of ``learn()``.
+What the hardware allows: the rows "GEMMs of CGAC's step" and "GEMMs of SAC's step" time the step's matrix products
+alone, in a worker of their own that takes turns with the others, on preallocated tensors of the same shapes (each
+layer's forward, its weight gradient where the update needs one, its input gradient where autograd computes one),
+with nothing else (no activations, losses, optimizers or sampling); in bfloat16 too when ``bf16`` is among the paths.
 Timings are printed, never asserted.
 """
 
@@ -67,6 +71,41 @@ def matmul_gflop(batch: int, actor_arch: list[int], critic_arch: list[int], n_cr
     return flop / 1e9
 
 
+Gemm = tuple[int, int, int]  # (m, k, n): a product of an (m, k) and a (k, n) matrix
+
+
+def mlp_gemms(batch: int, sizes: list[int], weight_grads: bool = False, input_grads: bool = False) -> list[Gemm]:
+    """
+    The matrix products of an MLP on a batch: each layer's forward, and with ``weight_grads`` / ``input_grads`` its
+    weight and input gradients (the first layer's input gradient too: pass it only where the input needs one).
+    """
+    gemms = []
+    for n_in, n_out in itertools.pairwise(sizes):
+        gemms.append((batch, n_in, n_out))
+        if weight_grads:
+            gemms.append((n_out, batch, n_in))
+        if input_grads:
+            gemms.append((batch, n_out, n_in))
+    return gemms
+
+
+def step_gemms(batch: int, actor_arch: list[int], critic_arch: list[int], n_critics: int, algo: str) -> list[Gemm]:
+    """The matrix products that autograd runs in one gradient step of CGAC or SB3 SAC (see ``matmul_gflop``)."""
+    actor, critic = [OBS_DIM, *actor_arch, 2 * ACTION_DIM], [OBS_DIM + ACTION_DIM, *critic_arch, 1]
+
+    def trained(sizes: list[int]) -> list[Gemm]:
+        # Weight gradients everywhere, input gradients from the second layer on (the data need none)
+        first_layer = mlp_gemms(batch, sizes[:2], weight_grads=True)
+        return first_layer + mlp_gemms(batch, sizes[1:], weight_grads=True, input_grads=True)
+
+    gemms = n_critics * trained(critic) + trained(actor)  # critic update; actor update, the actor's part
+    # The actor update's pass through the critics, back to the action: SAC also computes the critics' weight gradients
+    gemms += n_critics * mlp_gemms(batch, critic, weight_grads=algo == "sac", input_grads=True)
+    if algo == "sac":  # SAC's targets in every step: the actor on the next observations, then the target critics
+        gemms += mlp_gemms(batch, actor) + n_critics * mlp_gemms(batch, critic)
+    return gemms
+
+
 # --------------------------------------------------------------------------------------------------------------
 # Worker: builds one model, then runs gradient steps on request ("<n>\n" on stdin, elapsed seconds on stdout)
 # --------------------------------------------------------------------------------------------------------------
@@ -75,6 +114,9 @@ def matmul_gflop(batch: int, actor_arch: list[int], critic_arch: list[int], n_cr
 def worker(args: argparse.Namespace) -> None:
     if args.e2e_env is not None:
         e2e_worker(args)
+        return
+    if args.algo.endswith("-gemms"):
+        gemm_worker(args)
         return
     import gymnasium as gym
     import numpy as np
@@ -130,6 +172,33 @@ def worker(args: argparse.Namespace) -> None:
         start = time.perf_counter()
         for _ in range(n_steps):
             step()
+        if args.device == "cuda":
+            th.cuda.synchronize()
+        return time.perf_counter() - start, n_steps
+
+    serve(run, args.warmup)
+
+
+def gemm_worker(args: argparse.Namespace) -> None:
+    """The matrix products of one gradient step (``step_gemms``) on preallocated tensors; a unit is one step."""
+    import torch as th
+
+    th.set_num_threads(args.threads)
+    dtype = th.bfloat16 if args.path == "bf16" else th.float32
+    gemms = step_gemms(args.batch, args.actor, args.critic, 2, args.algo.removesuffix("-gemms"))
+    operands = [
+        (th.randn(m, k, dtype=dtype, device=args.device), th.randn(k, n, dtype=dtype, device=args.device),
+         th.empty(m, n, dtype=dtype, device=args.device))
+        for m, k, n in gemms
+    ]  # fmt: skip
+
+    def run(n_steps: int) -> tuple[float, int]:
+        if args.device == "cuda":
+            th.cuda.synchronize()
+        start = time.perf_counter()
+        for _ in range(n_steps):
+            for left, right, out in operands:
+                th.mm(left, right, out=out)
         if args.device == "cuda":
             th.cuda.synchronize()
         return time.perf_counter() - start, n_steps
@@ -232,6 +301,11 @@ def measure(args: argparse.Namespace, batch: int, critic: list[int], baseline: s
               "--warmup", str(args.warmup)]  # fmt: skip
     candidates = [Candidate(f"CGAC {path}", "cgac", [*common, "--path", path]) for path in args.paths]
     candidates.append(Candidate("SB3 SAC", "sac", common))
+    # What the hardware allows: the steps' matrix products alone
+    candidates.append(Candidate("GEMMs of CGAC's step", "cgac-gemms", [*common, "--path", "float32"]))
+    candidates.append(Candidate("GEMMs of SAC's step", "sac-gemms", [*common, "--path", "float32"]))
+    if "bf16" in args.paths:
+        candidates.append(Candidate("GEMMs of CGAC's step, bf16", "cgac-gemms", [*common, "--path", "bf16"]))
     if baseline is not None:
         candidates.append(baseline_candidate(args, common, baseline))
     run_rounds(candidates, args)
@@ -240,7 +314,7 @@ def measure(args: argparse.Namespace, batch: int, critic: list[int], baseline: s
     rows = []
     for candidate in candidates:
         seconds = median(candidate.times)
-        gflop = matmul_gflop(batch, args.actor, critic, 2, candidate.algo)
+        gflop = matmul_gflop(batch, args.actor, critic, 2, candidate.algo.removesuffix("-gemms"))
         vs_previous = f"{seconds / median(candidates[-1].times):.2f}" if baseline is not None else "-"
         rows.append(
             f"| {batch} | {critic} | {candidate.name} | {seconds * 1e3:.2f} | {seconds / sac_time:.2f} | "
@@ -299,7 +373,7 @@ def main() -> None:
     parser.add_argument("--e2e", nargs="+", metavar="ENV", help="end-to-end steps/s of these envs' zoo entries instead")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--e2e-env", help=argparse.SUPPRESS)
-    parser.add_argument("--algo", choices=["cgac", "sac"], help=argparse.SUPPRESS)
+    parser.add_argument("--algo", choices=["cgac", "sac", "cgac-gemms", "sac-gemms"], help=argparse.SUPPRESS)
     parser.add_argument("--path", default="default", help=argparse.SUPPRESS)
     parser.add_argument("--batch", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--critic", type=int, nargs="+", help=argparse.SUPPRESS)

@@ -50,10 +50,30 @@ def test_update_benchmark_tiny_budget(baseline_path, baseline_name):
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-3000:]
     rows = table_rows(result.stdout, "64")
-    assert [row[2] for row in rows] == ["CGAC default", "CGAC bf16", "CGAC stacked", "SB3 SAC", baseline_name]
+    gemms = ["GEMMs of CGAC's step", "GEMMs of SAC's step", "GEMMs of CGAC's step, bf16"]
+    assert [row[2] for row in rows] == ["CGAC default", "CGAC bf16", "CGAC stacked", "SB3 SAC", *gemms, baseline_name]
     for row in rows:
         assert float(row[3]) > 0 and float(row[7]) > 0  # ms per step, GFLOP/s
-    assert rows[3][4] == "1.00" and rows[0][5] == "1.00" and rows[4][6] == "1.00"  # each ratio's reference
+    assert rows[3][4] == "1.00" and rows[0][5] == "1.00" and rows[-1][6] == "1.00"  # each ratio's reference
+
+
+def test_step_gemms_match_the_flop_count():
+    # The products timed as "what the hardware allows" are those of the GFLOP/s column, less the first layers' input
+    # gradients, which that count includes and autograd skips (the data need none)
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import updates
+    finally:
+        sys.path.pop(0)
+    batch, actor, critic = 64, [32, 16], [24, 8]
+    obs, act = updates.OBS_DIM, updates.ACTION_DIM
+    first_actor, first_critic = 2 * batch * obs * actor[0], 2 * batch * (obs + act) * critic[0]
+    for algo, skipped in (("cgac", 2 * first_critic + first_actor), ("sac", 2 * first_critic + first_actor)):
+        flop = sum(2 * m * k * n for m, k, n in updates.step_gemms(batch, actor, critic, 2, algo))
+        assert flop == pytest.approx(updates.matmul_gflop(batch, actor, critic, 2, algo) * 1e9 - skipped)
+    # SAC's step has CGAC's products plus its targets and the critics' weight gradients in the actor update
+    cgac, sac = (updates.step_gemms(batch, actor, critic, 2, algo) for algo in ("cgac", "sac"))
+    assert len(sac) > len(cgac) and all(sac.count(gemm) >= cgac.count(gemm) for gemm in cgac)
 
 
 def test_update_benchmark_end_to_end():
