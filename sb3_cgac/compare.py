@@ -43,14 +43,14 @@ COLUMNS = ["run", "seed", "steps", "seconds", "mean_return", "mean_length"]
 
 def run_paths(out: Path, run: str, seed: int) -> tuple[Path, Path, Path]:
     """Evaluations, completion record and log of one (run, seed) pair."""
-    stem = out / "runs" / f"{run}_seed{seed}"
-    return stem.with_suffix(".csv"), stem.with_suffix(".json"), stem.with_suffix(".log")
+    # Names built as strings: a run name may hold a dot (``cgac_beta_0.5``), which Path.with_suffix would cut
+    stem = f"{run}_seed{seed}"
+    return out / "runs" / f"{stem}.csv", out / "runs" / f"{stem}.json", out / "runs" / f"{stem}.log"
 
 
 def train_stats_path(out: Path, run: str, seed: int) -> Path:
     """The training statistics (the logger's ``train/*`` values) at each evaluation of one (run, seed) pair."""
-    csv_path = run_paths(out, run, seed)[0]
-    return csv_path.with_name(f"{csv_path.stem}_train.csv")
+    return out / "runs" / f"{run}_seed{seed}_train.csv"
 
 
 def write_csv_atomically(path: Path, text: str) -> None:

@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> str:
     rows = scaling_table(args.folders, series, args.fraction)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    plot_scaling(rows, names, args.fraction, out.with_suffix(".png"))
+    plot_scaling(rows, names, args.fraction, out.with_name(out.name + ".png"))
 
     def minutes(seconds: float) -> str:
         return f"{seconds / 60:.1f}" if np.isfinite(seconds) else "not reached"
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> str:
         dims = next(iter(of_env.values()))["dims"]
         lines.append(f"| {env_id} | {dims} | " + " | ".join(cells) + " |")
     table = "\n".join(lines)
-    out.with_suffix(".md").write_text(table + "\n")
+    out.with_name(out.name + ".md").write_text(table + "\n")
     print(table)
     return table
 

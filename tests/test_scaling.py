@@ -101,3 +101,24 @@ def test_compare_summary_without_reference_run(tmp_path):
     table = summarise(tmp_path, ["cgac"], 2, None)
     assert "Threshold: 15.0 (best final return of any run; no ppo run yet)" in table
     assert "| cgac | 2 | 12 +/- 2 |" in table
+
+
+def test_run_names_with_a_dot(tmp_path):
+    # A hyperparameter file named after a value (cgac_beta_0.5.yml): every seed keeps files of its own
+    from sb3_cgac.compare import run_paths, train_stats_path
+
+    paths = [
+        (*run_paths(tmp_path, "cgac_beta_0.5", seed), train_stats_path(tmp_path, "cgac_beta_0.5", seed)) for seed in (0, 1)
+    ]
+    assert [path.name for path in paths[1]] == [
+        "cgac_beta_0.5_seed1.csv", "cgac_beta_0.5_seed1.json", "cgac_beta_0.5_seed1.log", "cgac_beta_0.5_seed1_train.csv"
+    ]  # fmt: skip
+    assert len({path for pair in paths for path in pair}) == 8
+
+
+def test_output_stem_with_a_dot(tmp_path):
+    folder = tmp_path / "Pendulum-v1"
+    folder.mkdir()
+    pd.DataFrame(evaluations("cgac", 0, [0, 5, 10])).to_csv(folder / "evaluations.csv", index=False)
+    table = main([str(folder), "--out", str(tmp_path / "scaling_v0.2")])
+    assert (tmp_path / "scaling_v0.2.png").exists() and (tmp_path / "scaling_v0.2.md").read_text().strip() == table
