@@ -166,17 +166,7 @@ def worker(args: argparse.Namespace) -> None:
         model.learn(WINDOW * N_ENVS)  # fills the window; later train() calls only run gradient steps
         step = model.train
 
-    def run(n_steps: int) -> tuple[float, int]:
-        if args.device == "cuda":
-            th.cuda.synchronize()
-        start = time.perf_counter()
-        for _ in range(n_steps):
-            step()
-        if args.device == "cuda":
-            th.cuda.synchronize()
-        return time.perf_counter() - start, n_steps
-
-    serve(run, args.warmup)
+    serve(timed_steps(step, args.device), args.warmup)
 
 
 def gemm_worker(args: argparse.Namespace) -> None:
@@ -192,18 +182,28 @@ def gemm_worker(args: argparse.Namespace) -> None:
         for m, k, n in gemms
     ]  # fmt: skip
 
+    def step() -> None:
+        for left, right, out in operands:
+            th.mm(left, right, out=out)
+
+    serve(timed_steps(step, args.device), args.warmup)
+
+
+def timed_steps(step: Any, device: str) -> Any:
+    """``run(n)`` for ``serve``: ``n`` calls of ``step``, timed to the end of their work on the device."""
+    import torch as th
+
     def run(n_steps: int) -> tuple[float, int]:
-        if args.device == "cuda":
+        if device == "cuda":
             th.cuda.synchronize()
         start = time.perf_counter()
         for _ in range(n_steps):
-            for left, right, out in operands:
-                th.mm(left, right, out=out)
-        if args.device == "cuda":
+            step()
+        if device == "cuda":
             th.cuda.synchronize()
         return time.perf_counter() - start, n_steps
 
-    serve(run, args.warmup)
+    return run
 
 
 def serve(run: Any, warmup: int) -> None:
