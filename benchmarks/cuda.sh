@@ -28,10 +28,8 @@ part() {  # part NAME SECONDS COMMAND...: run COMMAND with a time limit, its out
 part pytest-cuda.log 100 "$python" -m pytest -p no:cacheprovider -v -rs $(workers 8) tests/test_cuda_graphs.py tests/test_run.py::test_cuda \
     tests/test_learning.py::test_pendulum_entry_cuda_graphs tests/test_learning.py::test_pendulum_entry_reaches_minus_200
 part updates.md 130 "$python" benchmarks/updates.py --device cuda --rounds 3 --chunk 0.25 \
-    --paths default cuda-graphs bf16 bf16+cuda-graphs stacked stacked+cuda-graphs
+    --paths default cuda-graphs bf16 bf16+cuda-graphs
 part e2e.md 50 "$python" benchmarks/cuda_e2e.py --seconds 5
 # The CUDA graph tests ran above; here each worker process runs many tests, and a failed capture would leave the
 # process's CUDA random number generator unusable for the tests after it
 part pytest-all.log 130 "$python" -m pytest -p no:cacheprovider -v $(workers 12) --durations 12 -k "not cuda_graphs" tests
-part updates-compile.md 90 "$python" benchmarks/updates.py --device cuda --batch-sizes 4096 --critics 256,256 \
-    --rounds 3 --chunk 0.25 --paths default cuda-graphs compile compile-cudagraphs

@@ -1,7 +1,7 @@
 """
 Throughput of CGAC on large vectorised MuJoCo envs, measured side by side in one run.
 
-    python benchmarks/throughput.py --output docs/throughput.md   # full table (about 15 minutes on 2 cores)
+    python benchmarks/throughput.py --output throughput.md   # full table (about 15 minutes on 2 cores; docs/performance.md)
     python benchmarks/throughput.py --envs HalfCheetah-v5 --n-envs 256 --backends envpool --no-baselines
     python benchmarks/throughput.py --zoo-split Pendulum-v1 --e2e-seconds 20   # split of CGAC built from its YAML entry only
 

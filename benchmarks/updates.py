@@ -44,15 +44,10 @@ N_ENVS, WINDOW = 128, 32  # a full window holds 4096 transitions
 PATHS: dict[str, dict[str, Any]] = {
     "default": {},  # the package's defaults, or with --e2e the entry as it is
     "float32": {"update_precision": "float32"},
-    "compile": {"compile_updates": True},
     "bf16": {"update_precision": "bfloat16"},
-    "compile+bf16": {"compile_updates": True, "update_precision": "bfloat16"},
-    "stacked": {"policy_kwargs": {"stack_critics": True}},
-    # CUDA only: the updates replayed from CUDA graphs, ours or torch.compile's
+    # CUDA only: the updates replayed from CUDA graphs
     "cuda-graphs": {"cuda_graphs": True},
     "bf16+cuda-graphs": {"update_precision": "bfloat16", "cuda_graphs": True},
-    "stacked+cuda-graphs": {"cuda_graphs": True, "policy_kwargs": {"stack_critics": True}},
-    "compile-cudagraphs": {"compile_updates": {"mode": "reduce-overhead"}},
 }
 
 
@@ -208,7 +203,7 @@ def timed_steps(step: Any, device: str) -> Any:
 
 def serve(run: Any, warmup: int) -> None:
     """Answer "<n>" on stdin with "<seconds> <units>" on stdout: ``run(n)`` did that many units in that time."""
-    run(warmup)  # compiles where asked, and warms the allocator and caches
+    run(warmup)  # warms the allocator and caches
     print("ready", flush=True)
     for line in sys.stdin:
         seconds, units = run(int(line))
@@ -359,7 +354,7 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[512, 4096])
     parser.add_argument("--critics", nargs="+", default=["256,256", "1024,1024,256"], help="critic hidden layers")
     parser.add_argument("--actor", type=int, nargs="+", default=[256, 256], help="actor hidden layers")
-    parser.add_argument("--paths", nargs="+", default=["default", "compile", "bf16", "stacked"], choices=list(PATHS))
+    parser.add_argument("--paths", nargs="+", default=["default", "bf16"], choices=list(PATHS))
     parser.add_argument("--baseline", help="git revision of this repository to measure too (e.g. a release tag)")
     parser.add_argument(
         "--baseline-path", default="default", choices=list(PATHS), help="update path of the --baseline candidate"
@@ -378,8 +373,6 @@ def main() -> None:
     parser.add_argument("--batch", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--critic", type=int, nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.e2e and any("policy_kwargs" in PATHS[path] for path in args.paths):
-        parser.error("--e2e measures the entries' own networks: leave the stacked paths out of --paths")
     if args.worker:
         worker(args)
         return

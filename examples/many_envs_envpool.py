@@ -9,13 +9,17 @@ The settings are the HalfCheetah-v5 entry of ``hyperparams/cgac.yml``. Observati
 
 import argparse
 
-# sb3_cgac before torch: it keeps torch's idle threads from spinning on the cores envpool steps on
-from sb3_cgac import CGAC
-from sb3_cgac.callbacks import RewardEntropySchedule
-from sb3_cgac.vec_env import EnvPoolVecEnv
+from sb3_cgac.threads import configure_thread_spin
 
-from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.vec_env import VecNormalize
+# First, before anything loads torch: torch's idle threads then do not spin on the cores envpool steps on
+configure_thread_spin()
+
+from sb3_cgac import CGAC  # noqa: E402
+from sb3_cgac.callbacks import RewardEntropySchedule  # noqa: E402
+from sb3_cgac.vec_env import EnvPoolVecEnv  # noqa: E402
+
+from stable_baselines3.common.evaluation import evaluate_policy  # noqa: E402
+from stable_baselines3.common.vec_env import VecNormalize  # noqa: E402
 
 
 def main() -> None:
@@ -26,13 +30,10 @@ def main() -> None:
     args = parser.parse_args()
 
     env = VecNormalize(EnvPoolVecEnv("HalfCheetah-v5", num_envs=args.n_envs, seed=args.seed), norm_reward=False)
+    # On a CPU the defaults are the entry's update cost and averaging (batch 512, 4 critic updates per step)
     model = CGAC(
         "MlpPolicy",
         env,
-        batch_size=512,
-        critic_updates_per_step=4,
-        tau=0.02,
-        policy_tau=0.05,
         # The actor starts from near-zero mean actions: with the paper's init one seed in three stayed stuck for minutes
         policy_kwargs=dict(mean_init_scale=0.01),
         seed=args.seed,

@@ -13,7 +13,6 @@ TensorObs = th.Tensor | dict[str, th.Tensor]
 NumpyObs = np.ndarray | dict[str, np.ndarray]
 # Q-function used for the targets: (observations, actions) -> values of shape (batch,)
 QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]
-ActionSampler = Callable[[TensorObs], th.Tensor]
 
 # Observations with a larger magnitude are treated as corrupt, as in the paper's code
 OBS_ABS_LIMIT = 1e6
@@ -327,19 +326,14 @@ class CGACRolloutBuffer:
         return (self.pos - n_steps + th.arange(n_steps, device=self.device)) % self.buffer_window
 
     @th.no_grad()
-    def compute_returns(
-        self, target_q: QFunction, max_batch: int = 65536, next_action_sampler: ActionSampler | None = None
-    ) -> None:
+    def compute_returns(self, target_q: QFunction, max_batch: int = 65536) -> None:
         """
         Evaluate Qbar for the steps added since the last call, then recompute the Q-GAE targets of the window.
 
         :param target_q: Min-of-twin target critic, ``(obs, actions) -> values``
         :param max_batch: Largest batch given to ``target_q`` at once (bounds the memory of the forward pass)
-        :param next_action_sampler: When given, the next actions of the *whole window* are drawn again from it,
-            ``obs -> actions``, and Qbar of every step is evaluated again with ``target_q``, instead of keeping the
-            values computed when each step was added
         """
-        n_new = self.size if next_action_sampler is not None else self.n_pending
+        n_new = self.n_pending
         if n_new == 0:
             return
         slots = self._chronological_slots(n_new)
@@ -352,14 +346,6 @@ class CGACRolloutBuffer:
             assert isinstance(self.current_obs, th.Tensor)
             next_obs = th.cat([next_obs, self.current_obs[None]])
         flat_obs = _flatten_obs(next_obs, 2)
-        if next_action_sampler is not None:
-            fresh = th.cat(
-                [
-                    next_action_sampler(_index_obs(flat_obs, slice(start, start + max_batch)))
-                    for start in range(0, n_new * self.n_envs, max_batch)
-                ]
-            )
-            self.next_actions[slots] = fresh.reshape(n_new, self.n_envs, self.action_dim)
         flat_actions = self.next_actions[slots].reshape(-1, self.action_dim)
         values = th.cat(
             [
@@ -375,8 +361,6 @@ class CGACRolloutBuffer:
             terminal = self.terminal_observations[slot]
             if terminal is not None:
                 idx = terminal.env_indices
-                if next_action_sampler is not None:
-                    self.next_actions[slot, idx] = next_action_sampler(terminal.observations)
                 self.next_values[slot, idx] = target_q(terminal.observations, self.next_actions[slot, idx])
                 next_ok[row, idx] = terminal.ok
 

@@ -14,16 +14,17 @@ of them at once, so that two runs share a 2-core machine evenly. Finished pairs 
 again: a long comparison can be split over several calls.
 
 The budget is env steps (``--steps``) or training wall-clock minutes (``--minutes``; evaluation time is not counted,
-and the entries' ``n_timesteps`` do not stop a run early). Evaluations are deterministic, on separate envs, every
-``--eval-every`` of the budget (a fraction of the steps, or minutes). Outputs in ``--out``: ``evaluations.csv``
-(run, seed, steps, seconds, mean_return, mean_length: the mean episode length, which tells early terminations from
-poor behaviour; empty for runs made before it was recorded), ``return_vs_steps.png`` and ``return_vs_time.png`` (mean
-with a 95% bootstrap band over seeds; the IQM with rliable from 3 seeds on) and ``summary.md`` (final and best return,
-steps/s, time to reach a threshold, and the ratios of those times to PPO's and SAC's). ``--success-key success``
-adds each evaluation's success rate (the info key at each episode's last step, e.g. Adroit's ``success``).
-Beside each pair's evaluations, ``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the
-model's logger at each evaluation (CGAC: alpha as ``ent_coef``, ``entropy``, the losses...) and the mean return and
-length of the training envs' latest episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``).
+and the entries' ``n_timesteps`` do not stop a run early, though schedules follow them). Evaluations are
+deterministic, on separate envs, every ``--eval-every`` of the budget (a fraction of the steps, or minutes). Outputs
+in ``--out``: ``evaluations.csv`` (run, seed, steps, seconds, mean_return, mean_length: the mean episode length,
+which tells early terminations from poor behaviour; empty for runs made before it was recorded),
+``return_vs_steps.png`` and ``return_vs_time.png`` (mean with a 95% bootstrap band over seeds; the IQM with rliable
+from 3 seeds on) and ``summary.md`` (final and best return, steps/s, time to reach a threshold, and the ratios of
+those times to PPO's and SAC's). ``--success-key success`` adds each evaluation's success rate (the info key at
+each episode's last step, e.g. Adroit's ``success``). Beside each pair's evaluations,
+``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the model's logger at each evaluation
+(CGAC: alpha as ``ent_coef``, ``entropy``, the losses...) and the mean return and length of the training envs' latest
+episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``).
 """
 
 import argparse
@@ -35,6 +36,8 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+from sb3_cgac.threads import configure_thread_spin
 
 import numpy as np
 
@@ -99,6 +102,19 @@ def record_train_stats(
 # --------------------------------------------------------------------------------------------------------------
 # One (run, seed) pair, in a worker process
 # --------------------------------------------------------------------------------------------------------------
+
+
+def follow_planned_progress(model: Any, planned_timesteps: int) -> None:
+    """
+    Under a time budget, let the model's schedules (learning rates, ``LinearSchedule`` decays) follow the progress of
+    the entry's planned ``n_timesteps``, as in a zoo run of the entry, clipped at its end; ``learn()`` itself runs
+    until the clock stops it. The progress SB3 tracks is otherwise that of ``learn()``'s total.
+    """
+
+    def update(num_timesteps: int, total_timesteps: int) -> None:
+        model._current_progress_remaining = max(0.0, 1.0 - num_timesteps / planned_timesteps)
+
+    model._update_current_progress_remaining = update
 
 
 def train_one(args: argparse.Namespace) -> None:
@@ -189,8 +205,9 @@ def train_one(args: argparse.Namespace) -> None:
             self.evaluate()
 
     evaluator = EvaluateWithinBudget()
-    # With a time budget, training runs until the clock is out, whatever the entry's n_timesteps; schedules that
-    # follow training progress then stay near their start (the entries compared here use none)
+    if args.minutes and manager.n_timesteps > 0:
+        follow_planned_progress(model, int(manager.n_timesteps))
+    # With a time budget, training runs until the clock is out, whatever the entry's n_timesteps
     model.learn(args.steps or 10**12, callback=[*manager.callbacks, evaluator])
     done_path.write_text(json.dumps({"steps": model.num_timesteps, "seconds": evaluator.seconds}))
 
@@ -480,6 +497,7 @@ def main(
     :param argv: Command-line arguments
     :param references: Runs the others are compared with (see ``summarise``)
     """
+    configure_thread_spin()  # the workers inherit the setting; torch is not loaded yet in this process
     args = build_parser().parse_args(argv)
     args.out = args.out or f"results/{args.env}"
     if args.eval_every is None:

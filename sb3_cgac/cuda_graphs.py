@@ -1,5 +1,6 @@
 """
-CUDA graphs of CGAC's gradient steps (``CGAC(..., cuda_graphs=True)``).
+CUDA graphs of CGAC's gradient steps (``CGAC(..., cuda_graphs=True)``): :class:`UpdateGraphs` is what the algorithm
+uses; the functions below it keep the optimizers replayable across saves and loads.
 
 With the networks of continuous control (a few layers of a few hundred units) a gradient step on a GPU is a few
 hundred small kernels, and launching them from Python takes longer than running them. A CUDA graph records the
@@ -9,7 +10,10 @@ input tensors, the networks and optimizer states are updated in place, and the l
 :func:`set_learning_rate` fills in place (a float learning rate would be frozen into the graph).
 """
 
-from collections.abc import Callable, Iterable, Sequence
+import contextlib
+import warnings
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any
 
 import torch as th
 
@@ -168,3 +172,68 @@ def set_learning_rate(optimizer: th.optim.Optimizer, learning_rate: float) -> No
             group["lr"].fill_(learning_rate)
         else:
             group["lr"] = learning_rate
+
+
+class UpdateGraphs:
+    """
+    The critic and actor updates of a model, eager or replayed as CUDA graphs (made at the first call of ``steps``),
+    and what a load of saved parameters must do to the optimizers the graphs read.
+
+    :param critic_update: The critic update function (tensors in, one tensor of statistics out)
+    :param actor_update: The actor update function, likewise
+    :param optimizers: The optimizers the updates step (called when needed: a load may replace them)
+    :param device: The device of the updates
+    :param enabled: Whether to capture CUDA graphs (on a CUDA device only; elsewhere a warning and eager updates)
+    """
+
+    def __init__(
+        self,
+        critic_update: Callable[..., th.Tensor],
+        actor_update: Callable[..., th.Tensor],
+        optimizers: Callable[[], list[th.optim.Optimizer]],
+        device: th.device,
+        enabled: bool,
+    ):
+        self.critic_update = critic_update
+        self.actor_update = actor_update
+        self.optimizers = optimizers
+        self.device = device
+        self.enabled = enabled and device.type == "cuda"
+        self.graphs: tuple[GraphedStep, GraphedStep] | None = None
+        if enabled and not self.enabled:
+            warnings.warn(f"CGAC: cuda_graphs=True has no effect on device {device}: the updates run eagerly.", stacklevel=4)
+        if self.enabled:
+            check_capturable(optimizers())
+
+    def steps(self) -> tuple[Callable[..., th.Tensor], Callable[..., th.Tensor]]:
+        """The critic and actor update functions: the eager ones, or their CUDA graphs."""
+        if not self.enabled:
+            return self.critic_update, self.actor_update
+        if self.graphs is None:
+            prepare_optimizers_for_capture(self.optimizers(), self.device)
+            self.graphs = (GraphedStep(self.critic_update, "critic update"), GraphedStep(self.actor_update, "actor update"))
+        return self.graphs
+
+    @contextlib.contextmanager
+    def loading(self) -> Iterator[None]:
+        """
+        Around a load of saved parameters. The networks load in place, the optimizers' states do not: the graphs read
+        the old tensors, so the loaded values are copied into those (a second capture of the same parameters' updates
+        failed on CUDA); where the layout differs, the graphs are dropped and captured again.
+        """
+        kept = keep_optimizer_tensors(self.optimizers()) if self.graphs is not None else None
+        yield
+        if kept is not None and not restore_optimizer_tensors(self.optimizers(), kept):
+            release_optimizers_from_capture(self.optimizers())
+            self.graphs = None
+
+
+def plain_optimizer_states(params: dict[str, Any], names: Iterable[str]) -> None:
+    """
+    Give the saved state dicts of optimizers (``names`` in ``params``) float learning rates and ``capturable=False``
+    whatever the training used, so that saved models load on any device.
+    """
+    for name in names:
+        for group in params.get(name, {}).get("param_groups", []):
+            if isinstance(group["lr"], th.Tensor):  # set by prepare_optimizers_for_capture
+                release_param_group(group)

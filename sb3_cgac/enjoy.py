@@ -6,6 +6,11 @@ Replay a trained agent with rl-baselines3-zoo's ``enjoy``, CGAC included (extra 
 Models trained on envpool replay on the gymnasium env of the same id (the spaces match).
 """
 
+from sb3_cgac.threads import configure_thread_spin
+
+if __name__ == "__main__":
+    configure_thread_spin()  # before sb3_cgac.zoo loads torch
+
 from sb3_cgac.zoo import enjoy
 
 if __name__ == "__main__":

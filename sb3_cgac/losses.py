@@ -1,6 +1,6 @@
 """
 CGAC's loss functions, pure functions of tensors and networks (as sb3-contrib keeps ``quantile_huber_loss`` apart from
-its algorithms), so that the update step can be compiled with ``torch.compile`` as a whole.
+its algorithms).
 """
 
 from sb3_cgac.policies import Actor, CGACCritic
@@ -9,21 +9,18 @@ import torch as th
 from stable_baselines3.common.type_aliases import PyTorchObs
 
 
-def q_regression_loss(q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor, loss: str = "huber") -> th.Tensor:
+def q_regression_loss(q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor) -> th.Tensor:
     """
-    Sum over critics and batch of the per-sample regression loss of the critics to the Q-GAE targets (paper Eq. 8).
+    Sum over critics and batch of the per-sample regression loss of the critics to the Q-GAE targets (paper Eq. 8):
+    the adaptive Huber loss of the paper's code, squared below 4x the batch median of ``|delta|`` of each critic and
+    linear above (continuous at the threshold), so that a few huge target errors cannot dominate the update.
 
     :param q_values: Q-values of each critic, shape (n_critics, batch)
     :param returns: Q-GAE targets, shape (batch,)
     :param weights: Sample weights (0 for excluded transitions), shape (batch,)
-    :param loss: ``"mse"``, or ``"huber"``: the adaptive Huber loss of the paper's code, squared below 4x the batch
-        median of ``|delta|`` of each critic and linear above (continuous at the threshold), so that a few huge target
-        errors cannot dominate the update
     :return: The summed loss (divide by the weight sum for the mean)
     """
     delta = (q_values - returns) * weights
-    if loss == "mse":
-        return (delta**2).sum()
     abs_delta = delta.abs()
     threshold = 4.0 * abs_delta.detach().median(dim=-1, keepdim=True).values
     linear = 2.0 * threshold * abs_delta - threshold**2
@@ -37,11 +34,10 @@ def critic_loss(
     returns: th.Tensor,
     weights: th.Tensor,
     weight_sum: th.Tensor,
-    loss: str = "huber",
     autocast_dtype: th.dtype | None = None,
 ) -> tuple[th.Tensor, th.Tensor]:
     """
-    Weighted mean regression loss of all critics (paper Eq. 8).
+    Weighted mean regression loss of all critics (paper Eq. 8, see ``q_regression_loss``).
 
     :param critic: The trained critics
     :param observations: Observations of the minibatch
@@ -49,14 +45,13 @@ def critic_loss(
     :param returns: Q-GAE targets (paper Eq. 9-10)
     :param weights: Sample weights (0 for excluded transitions)
     :param weight_sum: Sum of the weights (at least 1)
-    :param loss: ``"huber"`` or ``"mse"`` (see ``q_regression_loss``)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
     :return: The loss, and the mean Q-value of the first critic (detached)
     """
     with th.autocast(actions.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
         q_values = critic.q_values(observations, actions)
     q_values = q_values.float()
-    return q_regression_loss(q_values, returns, weights, loss) / weight_sum, q_values[0].detach().mean()
+    return q_regression_loss(q_values, returns, weights) / weight_sum, q_values[0].detach().mean()
 
 
 def actor_loss(
@@ -87,73 +82,6 @@ def actor_loss(
     log_prob = log_prob.float()
     loss = ((ent_coef * log_prob - min_q.float()) * weights).sum() / weight_sum
     return loss, log_prob.detach()
-
-
-def behaviour_kl(
-    actor: Actor, behaviour: Actor, observations: PyTorchObs, weights: th.Tensor, weight_sum: th.Tensor
-) -> th.Tensor:
-    """
-    Weighted batch mean of ``KL(behaviour(.|s) || actor(.|s))`` between the Gaussians before the tanh squashing (the
-    squashing does not change a KL divergence). The critics only saw actions of the behaviour policy (the averaged
-    actor), so their gradient dQ/da is an extrapolation far from it: this penalty keeps the trained actor where the
-    critic is informed, as a trust region does.
-
-    :param actor: The trained actor (gradients flow into it)
-    :param behaviour: The averaged actor that collected the window
-    :param observations: Observations of the minibatch
-    :param weights: Sample weights (0 for excluded transitions)
-    :param weight_sum: Sum of the weights (at least 1)
-    :return: The KL divergence, summed over action dims, averaged over the batch
-    """
-    with th.no_grad():
-        mean_b, log_std_b = behaviour.get_action_dist_params(observations)
-    mean, log_std = actor.get_action_dist_params(observations)
-    kl = log_std - log_std_b + (th.exp(2 * log_std_b) + (mean_b - mean) ** 2) / (2 * th.exp(2 * log_std)) - 0.5
-    return (kl.sum(dim=-1) * weights).sum() / weight_sum
-
-
-def outlier_clipped_actor_loss(
-    actor: Actor,
-    critic: CGACCritic,
-    observations: PyTorchObs,
-    weights: th.Tensor,
-    weight_sum: th.Tensor,
-    ent_coef: th.Tensor,
-    ratio_average: th.Tensor,
-) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-    """
-    ``actor_loss`` with the paper's code's optional outlier clipping of dQ/da (see ``clip_gradient_outliers``): a
-    surrogate loss whose gradient through the actions is the clipped dQ/da, in float32.
-
-    :param ratio_average: Running average of the outlier ratio of dQ/da
-    :return: The loss, the log-probabilities of the sampled actions (detached) and the new running average
-    """
-    actions_pi, log_prob = actor.action_log_prob(observations)
-    min_q_pi = critic.q_values(observations, actions_pi).min(dim=0).values
-    q_objective = (min_q_pi * weights).sum() / weight_sum
-    dq_da, ratio_average = clip_gradient_outliers(
-        th.autograd.grad(q_objective, actions_pi, retain_graph=True)[0], ratio_average
-    )
-    loss = (ent_coef * log_prob * weights).sum() / weight_sum - (dq_da.detach() * actions_pi).sum()
-    return loss, log_prob.detach(), ratio_average
-
-
-def clip_gradient_outliers(dq_da: th.Tensor, ratio_average: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-    """
-    Outlier clipping of dQ/da of the paper's code, without a device sync: when the mean over action dims of
-    ``max|g| / median|g|`` exceeds twice its running average, each dim is clamped to its [50th, 95th] percentile
-    range over the batch.
-
-    :param dq_da: Gradient of the Q objective with respect to the actions, shape (batch, action_dim)
-    :param ratio_average: Running average of that ratio
-    :return: The (possibly) clipped gradient, and the new running average
-    """
-    abs_grad = dq_da.abs()
-    ratio = (abs_grad.max(dim=0).values / abs_grad.median(dim=0).values.clamp_min(1e-12)).mean()
-    ratio_average = 0.95 * ratio_average + 0.05 * ratio
-    quantiles = th.quantile(dq_da, th.tensor([0.5, 0.95], device=dq_da.device), dim=0)
-    clipped = th.clamp(dq_da, min=quantiles[0], max=quantiles[1])
-    return th.where(ratio > 2.0 * ratio_average, clipped, dq_da), ratio_average
 
 
 def clamped_log_ent_coef(

@@ -108,8 +108,6 @@ class Actor(BasePolicy):
     :param features_dim: Number of features
     :param activation_fn: Activation function
     :param log_std_init: Initial value of the log standard deviation
-    :param state_dependent_std: Whether the log standard deviation is a head of the network (as in SAC)
-        instead of a learnable state-independent vector (the paper's code)
     :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
     :param mean_init_scale: Factor on the initial weights and bias of the layer that outputs the Gaussian's mean
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
@@ -126,7 +124,6 @@ class Actor(BasePolicy):
         features_dim: int,
         activation_fn: type[nn.Module] = nn.ELU,
         log_std_init: float = -1.0,
-        state_dependent_std: bool = False,
         use_xavier_init: bool = True,
         mean_init_scale: float = 1.0,
         normalize_images: bool = True,
@@ -142,7 +139,6 @@ class Actor(BasePolicy):
         self.features_dim = features_dim
         self.activation_fn = activation_fn
         self.log_std_init = log_std_init
-        self.state_dependent_std = state_dependent_std
         self.use_xavier_init = use_xavier_init
         self.mean_init_scale = mean_init_scale
 
@@ -150,11 +146,8 @@ class Actor(BasePolicy):
         self.latent_pi = nn.Sequential(*create_mlp(features_dim, -1, net_arch, activation_fn))
         last_layer_dim = net_arch[-1] if len(net_arch) > 0 else features_dim
         self.mu = nn.Linear(last_layer_dim, action_dim)
-        self.log_std: nn.Linear | nn.Parameter
-        if state_dependent_std:
-            self.log_std = nn.Linear(last_layer_dim, action_dim)
-        else:
-            self.log_std = nn.Parameter(th.full((action_dim,), float(log_std_init)))
+        # A learnable state-independent log standard deviation (the paper's code)
+        self.log_std = nn.Parameter(th.full((action_dim,), float(log_std_init)))
         if use_xavier_init:
             xavier_init(self)
         if mean_init_scale != 1.0:
@@ -163,10 +156,6 @@ class Actor(BasePolicy):
             with th.no_grad():
                 self.mu.weight.mul_(mean_init_scale)
                 self.mu.bias.mul_(mean_init_scale)
-        if isinstance(self.log_std, nn.Linear):
-            # Start from the requested standard deviation whatever the initial features
-            nn.init.zeros_(self.log_std.weight)
-            nn.init.constant_(self.log_std.bias, float(log_std_init))
         self.action_dist = SquashedDiagGaussianDistribution(action_dim)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
@@ -177,7 +166,6 @@ class Actor(BasePolicy):
                 features_dim=self.features_dim,
                 activation_fn=self.activation_fn,
                 log_std_init=self.log_std_init,
-                state_dependent_std=self.state_dependent_std,
                 use_xavier_init=self.use_xavier_init,
                 mean_init_scale=self.mean_init_scale,
                 features_extractor=self.features_extractor,
@@ -192,8 +180,7 @@ class Actor(BasePolicy):
         """
         latent_pi = self.latent_pi(self.extract_features(obs, self.features_extractor))
         mean_actions = self.mu(latent_pi)
-        log_std = self.log_std(latent_pi) if isinstance(self.log_std, nn.Linear) else self.log_std
-        return mean_actions, th.clamp(log_std, LOG_STD_MIN, LOG_STD_MAX)
+        return mean_actions, th.clamp(self.log_std, LOG_STD_MIN, LOG_STD_MAX)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         mean_actions, log_std = self.get_action_dist_params(obs)
@@ -248,7 +235,6 @@ class CGACPolicy(BasePolicy):
     :param net_arch: Hidden layers, the same list for actor and critics, or ``dict(pi=[...], qf=[...])``
     :param activation_fn: Activation function (ELU in the paper)
     :param log_std_init: Initial log standard deviation of the actor (-1 in the paper's code)
-    :param state_dependent_std: Whether the actor's log standard deviation depends on the state
     :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
     :param mean_init_scale: Factor on the initial weights of the actor's mean layer: 1 keeps the initialisation
         above; a small value such as 0.01 makes the untrained actor's mean actions near zero, so that it starts from
@@ -264,12 +250,6 @@ class CGACPolicy(BasePolicy):
     :param normalize_observations: Normalise observations with running statistics inside the policy, clipped at
         +-5 (the authors' code always does), so that no ``VecNormalize`` is needed; the statistics are updated
         from the collected observations and saved with the model (Box observations only)
-    :param critic_layer_norm: Whether to put LayerNorm after every hidden layer of the critics
-    :param stack_critics: Whether to evaluate the critics as one stacked network (one batched matmul per layer for
-        all of them) instead of one network after the other
-    :param critic_float32_output: Whether the critics' output layers run in float32 when the updates run under
-        bfloat16 autocast (``update_precision``); False rounds the Q-values to bfloat16 like the hidden layers.
-        No effect on float32 updates
     :param predict_actor: Whether to keep a third copy of the actor, ``actor_predict``, that ``predict()`` acts with
         (set by CGAC's ``predict_tau``, which averages it); False: ``predict()`` acts with the averaged actor
     """
@@ -288,7 +268,6 @@ class CGACPolicy(BasePolicy):
         net_arch: list[int] | dict[str, list[int]] | None = None,
         activation_fn: type[nn.Module] = nn.ELU,
         log_std_init: float = -1.0,
-        state_dependent_std: bool = False,
         use_xavier_init: bool = True,
         mean_init_scale: float = 1.0,
         features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
@@ -299,9 +278,6 @@ class CGACPolicy(BasePolicy):
         n_critics: int = 2,
         share_features_extractor: bool = False,
         normalize_observations: bool = False,
-        critic_layer_norm: bool = False,
-        stack_critics: bool = False,
-        critic_float32_output: bool = True,
         predict_actor: bool = False,
     ):
         super().__init__(
@@ -351,7 +327,6 @@ class CGACPolicy(BasePolicy):
             **net_args,
             "net_arch": actor_arch,
             "log_std_init": log_std_init,
-            "state_dependent_std": state_dependent_std,
             "use_xavier_init": use_xavier_init,
             "mean_init_scale": mean_init_scale,
         }
@@ -360,10 +335,7 @@ class CGACPolicy(BasePolicy):
             "net_arch": critic_arch,
             "n_critics": n_critics,
             "share_features_extractor": share_features_extractor,
-            "layer_norm": critic_layer_norm,
             "use_xavier_init": use_xavier_init,
-            "stacked": stack_critics,
-            "float32_output": critic_float32_output,
         }
         self._build(lr_schedule)
 
@@ -413,7 +385,6 @@ class CGACPolicy(BasePolicy):
                 net_arch=self.net_arch,
                 activation_fn=self.activation_fn,
                 log_std_init=self.actor_kwargs["log_std_init"],
-                state_dependent_std=self.actor_kwargs["state_dependent_std"],
                 use_xavier_init=self.use_xavier_init,
                 mean_init_scale=self.actor_kwargs["mean_init_scale"],
                 lr_schedule=self._dummy_schedule,  # not needed to load the policy alone
@@ -424,9 +395,6 @@ class CGACPolicy(BasePolicy):
                 n_critics=self.critic_kwargs["n_critics"],
                 share_features_extractor=self.share_features_extractor,
                 normalize_observations=self.normalize_observations,
-                critic_layer_norm=self.critic_kwargs["layer_norm"],
-                stack_critics=self.critic_kwargs["stacked"],
-                critic_float32_output=self.critic_kwargs["float32_output"],
                 predict_actor=self.predict_actor,
             )
         )

@@ -8,6 +8,11 @@ Every rl_zoo3 flag keeps working (``python -m rl_zoo3.train --help`` lists them)
 accepts ``envpool``, ``gymnasium`` and ``gymnasium_async``.
 """
 
+from sb3_cgac.threads import configure_thread_spin
+
+if __name__ == "__main__":
+    configure_thread_spin()  # before sb3_cgac.zoo loads torch
+
 from sb3_cgac.zoo import train
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.utils import ConstantSchedule
+from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule
 from stable_baselines3.common.vec_env import VecEnv
 
 try:
@@ -35,8 +35,29 @@ except ImportError as error:  # pragma: no cover - depends on the installed extr
 HYPERPARAMS_DIR = Path(str(importlib.resources.files("sb3_cgac.hyperparams")))
 # Backends that are not built from per-env constructors, so the zoo's own make_vec_env cannot build them
 ADAPTER_BACKENDS = ("envpool", "gymnasium", "gymnasium_async")
-# Learning-rate keys turned into schedules: the zoo's own, and CGAC's separate critic and alpha rates
-SCHEDULE_KEYS = ("learning_rate", "critic_learning_rate", "ent_coef_learning_rate", "clip_range", "clip_range_vf", "delta_std")
+# Keys turned into schedules (the zoo's own)
+SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf", "delta_std")
+
+
+def parse_schedule(key: str, value: str) -> Callable[[float], float]:
+    """
+    A schedule named in a YAML entry: ``lin_<initial>`` (the zoo's, to 0 at the end of training) or
+    ``lin_<start>_<end>_<end_fraction>`` (SB3's ``LinearSchedule``).
+    """
+    name, *numbers = value.split("_")
+    try:
+        values = [float(number) for number in numbers]
+    except ValueError:
+        values = []
+    if name == "lin" and len(values) == 1:
+        return SimpleLinearSchedule(values[0])
+    if name == "lin" and len(values) == 3 and 0.0 < values[2] <= 1.0:
+        return LinearSchedule(*values)
+    raise ValueError(
+        f"Unknown schedule {value!r} for {key}: use a number, 'lin_<initial value>' (linear to 0) or "
+        "'lin_<start>_<end>_<end_fraction>' (linear from start to end over that fraction of n_timesteps, end_fraction "
+        "in (0, 1]), e.g. 'lin_2e-3_1e-4_0.256'."
+    )
 
 
 def register() -> None:
@@ -65,9 +86,10 @@ class CGACExperimentManager(ExperimentManager):
     """
     rl_zoo3's ``ExperimentManager`` with three additions: ``backend`` builds the training and evaluation envs with
     ``sb3_cgac.vec_env.make_vec_env`` (the zoo's normalization, frame stacking and VecEnv wrappers still apply),
-    CGAC's ``critic_learning_rate`` / ``ent_coef_learning_rate`` accept the zoo's ``lin_<value>`` schedules, and
-    the YAML key ``random_first_episode: true`` cuts the first episode of every training env at a random length
-    (with any backend; evaluation envs are left alone).
+    schedules also take the form ``lin_<start>_<end>_<end_fraction>`` (SB3's ``LinearSchedule``: linear from start to
+    end over that fraction of ``n_timesteps``, then constant; the authors' learning-rate decay), and the YAML key
+    ``random_first_episode: true`` cuts the first episode of every training env at a random length (with any backend;
+    evaluation envs are left alone).
 
     :param backend: One of ``sb3_cgac.vec_env.BACKENDS``
     :param backend_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool)
@@ -95,10 +117,7 @@ class CGACExperimentManager(ExperimentManager):
         for key in SCHEDULE_KEYS:
             value = hyperparams.get(key)
             if isinstance(value, str):
-                schedule, initial_value = value.split("_")
-                if schedule != "lin":
-                    raise ValueError(f"Unknown schedule {value!r} for {key}: use 'lin_<initial value>' or a number.")
-                hyperparams[key] = SimpleLinearSchedule(float(initial_value))
+                hyperparams[key] = parse_schedule(key, value)
             elif isinstance(value, (float, int)) and value >= 0:
                 hyperparams[key] = ConstantSchedule(float(value))
         return hyperparams

@@ -1,8 +1,13 @@
 """Settings shared by the whole test session."""
 
 import os
+import pathlib
+import sys
 
 import pytest
+
+# The experiment drivers live outside the installed package: tests import them from experiments/
+sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "experiments"))
 
 
 @pytest.fixture(autouse=True, scope="session")

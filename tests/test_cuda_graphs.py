@@ -18,6 +18,7 @@ import pytest
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import LinearSchedule
 from test_run import DictObsEnv  # tests/ is on sys.path under pytest
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
@@ -54,7 +55,7 @@ def test_cuda_graphs_ignored_on_cpu():
     with pytest.warns(UserWarning, match="cuda_graphs=True has no effect on device cpu"):
         model = CGAC("MlpPolicy", make_env(), device="cpu", cuda_graphs=True, buffer_window=4, batch_size=32, **SMALL)
     model.learn(8 * 16)
-    assert model._n_updates > 0 and model._graphed_updates is None
+    assert model._n_updates > 0 and model._update_graphs.graphs is None
 
 
 def test_saved_optimizers_are_plain(tmp_path: pathlib.Path):
@@ -81,12 +82,12 @@ def test_set_parameters_keeps_the_tensors_that_graphs_read(tmp_path: pathlib.Pat
     model.learn(8 * 16)  # moves away from the saved state
     optimizers = model._optimizers()
     prepare_optimizers_for_capture(optimizers, model.device)
-    model._graphed_updates = (GraphedStep(model._critic_update, "critic"), GraphedStep(model._actor_update, "actor"))
+    model._update_graphs.graphs = (GraphedStep(model._critic_update, "critic"), GraphedStep(model._actor_update, "actor"))
     kept = [(dict(optimizer.state), [group["lr"] for group in optimizer.param_groups]) for optimizer in optimizers]
     kept_tensors = [{param: dict(param_state) for param, param_state in state.items()} for state, _ in kept]
 
     model.set_parameters(str(tmp_path / "model.zip"), device="cpu")
-    assert model._graphed_updates is not None
+    assert model._update_graphs.graphs is not None
     for optimizer, saved_optimizer, (_, lrs), tensors in zip(optimizers, saved._optimizers(), kept, kept_tensors, strict=True):
         for (param, param_state), saved_state in zip(tensors.items(), saved_optimizer.state.values(), strict=True):
             for key, tensor in param_state.items():
@@ -118,25 +119,19 @@ def graphed_and_eager(n_envs: int = 8, env=None, **kwargs) -> tuple[CGAC, CGAC]:
         {},
         # Nearly no action noise: the comparison does not depend on the graphs drawing the eager run's random numbers
         dict(policy_kwargs=dict(net_arch=[16], log_std_init=-10.0)),
-        dict(ent_coef=0.05, policy_delay=1, final_learning_rate=1e-4, lr_decay_iterations=5),
-        # The Ant-v5 recipe's options: alpha's rate decayed with the actor's, a third (predict) average, fresh targets
-        dict(
-            final_learning_rate=1e-4,
-            lr_decay_iterations=5,
-            decay_ent_coef_learning_rate=True,
-            predict_tau=0.01,
-            refresh_target_values=True,
-        ),
-        dict(ent_coef_monotone=True, behaviour_kl_coef=0.1, policy_kwargs=dict(net_arch=[16], normalize_observations=True)),
-        dict(update_precision="bfloat16", policy_kwargs=dict(net_arch=[16], stack_critics=True, critic_layer_norm=True)),
+        dict(ent_coef=0.05, policy_delay=1, learning_rate=LinearSchedule(2e-3, 1e-4, 0.5)),
+        # The Ant-v5 recipe's options: the learning-rate decay (alpha's rate follows it), a third (predict) average
+        dict(learning_rate=LinearSchedule(2e-3, 1e-4, 0.5), predict_tau=0.01),
+        dict(ent_coef_monotone=True, policy_kwargs=dict(net_arch=[16], normalize_observations=True)),
+        dict(update_precision="bfloat16"),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(foreach=True))),
     ],
 )
 def test_cuda_graphs_match_eager(kwargs):
     """Replaying the captured updates gives the eager updates' parameters, to float rounding."""
     eager, graphed = graphed_and_eager(**kwargs)
-    assert graphed._graphed_updates is not None
-    assert all(step.graph is not None for step in graphed._graphed_updates), "both updates were captured and replayed"
+    assert graphed._update_graphs.graphs is not None
+    assert all(step.graph is not None for step in graphed._update_graphs.graphs), "both updates were captured and replayed"
     assert graphed._n_updates == eager._n_updates
     for (name, expected), actual in zip(eager.policy.state_dict().items(), graphed.policy.state_dict().values(), strict=True):
         th.testing.assert_close(actual, expected, rtol=1e-4, atol=1e-5, msg=lambda text, name=name: f"{name}: {text}")
@@ -159,8 +154,8 @@ def test_cuda_graphs_need_capturable_optimizers():
 @needs_cuda
 def test_cuda_graphs_dict_observations():
     eager, graphed = graphed_and_eager(n_envs=4, env=lambda: make_vec_env(DictObsEnv, n_envs=4, seed=0), batch_size=16)
-    assert isinstance(graphed.observation_space, spaces.Dict) and graphed._graphed_updates is not None
-    assert all(step.graph is not None for step in graphed._graphed_updates)
+    assert isinstance(graphed.observation_space, spaces.Dict) and graphed._update_graphs.graphs is not None
+    assert all(step.graph is not None for step in graphed._update_graphs.graphs)
     for expected, actual in zip(eager.policy.parameters(), graphed.policy.parameters(), strict=True):
         th.testing.assert_close(actual, expected, rtol=1e-4, atol=1e-5)
 
@@ -173,11 +168,11 @@ def test_cuda_graphs_save_load_and_set_parameters(tmp_path: pathlib.Path):
     for device in ("cpu", "cuda"):
         loaded = CGAC.load(tmp_path / "model", env=make_env(), device=device)
         loaded.learn(8 * 16)  # captured again on the GPU, eager on the CPU
-        assert (loaded._graphed_updates is not None) == (device == "cuda")
+        assert (loaded._update_graphs.graphs is not None) == (device == "cuda")
     # Loading parameters into a model keeps its graphs: the loaded optimizer states are copied into the tensors they read
-    graphs = model._graphed_updates
+    graphs = model._update_graphs.graphs
     model.set_parameters(str(tmp_path / "model.zip"))
-    assert model._graphed_updates is graphs
+    assert model._update_graphs.graphs is graphs
     before = [param.clone() for param in model.actor.parameters()]
     model.learn(8 * 16, reset_num_timesteps=False)
     assert any(not th.equal(old, new) for old, new in zip(before, model.actor.parameters(), strict=True))

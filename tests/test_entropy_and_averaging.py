@@ -1,8 +1,7 @@
-import warnings
-
 from sb3_cgac import CGAC
+from sb3_cgac.buffers import samples_to_tensors
 from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
-from sb3_cgac.hyperparameters import resolve_critic_updates_per_step
+from sb3_cgac.hyperparameters import resolve_batch_size, resolve_critic_updates_per_step, resolve_polyak_rates
 
 import gymnasium as gym
 import numpy as np
@@ -89,14 +88,13 @@ def test_alpha_clamp_releases_only_below_target():
     """One update by hand: with the entropy above target the clamp holds, below it alpha follows Adam up."""
     model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), **SMALL)
     model.learn(400)
-    data = model.rollout_buffer.sample(64)
-    weight_sum = data.weights.sum()
+    minibatch = samples_to_tensors(model.rollout_buffer.sample(64))
     # Momentum that pushes log(alpha) up, whatever this batch's gradient says
     model.log_ent_coef.grad = th.tensor([-1e6], device=model.device)
     model.ent_coef_optimizer.step()
     for target_entropy, may_rise in ((-100.0, False), (100.0, True)):
         before = model.log_ent_coef.item()
-        model._actor_step(data, weight_sum, target_entropy)
+        model._actor_update(th.tensor(target_entropy), *minibatch)
         if may_rise:
             assert model.log_ent_coef.item() > before
         else:
@@ -119,18 +117,6 @@ def test_reward_schedule(reward, expected_beta):
     assert model.target_entropy_beta == pytest.approx(expected_beta, abs=1e-3)
 
 
-def test_reward_schedule_from_hyperparameter():
-    model = CGAC(
-        "MlpPolicy",
-        make_vec_env(ConstantRewardEnv, n_envs=4, seed=0, env_kwargs=dict(reward=3.0)),
-        entropy_schedule="reward",
-        entropy_schedule_kwargs=dict(beta_init=0.5, beta_final=2.5, init_expected_reward=2.0, peak_expected_reward=4.0),
-        **SMALL,
-    )
-    model.learn(800)
-    assert model.target_entropy_beta == pytest.approx(1.5, abs=1e-3)
-
-
 def test_progress_schedule():
     schedule = ProgressEntropySchedule(beta_init=0.2, beta_final=3.5, end_fraction=0.5)
     record = RecordAlpha()
@@ -145,9 +131,9 @@ def test_progress_schedule():
     assert np.all(betas[steps >= 400] == pytest.approx(3.5))
 
 
-def test_progress_schedule_from_hyperparameter_sets_target_entropy():
-    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=4, seed=0), entropy_schedule="progress", **SMALL)
-    model.learn(400)
+def test_progress_schedule_sets_target_entropy():
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=4, seed=0), **SMALL)
+    model.learn(400, callback=ProgressEntropySchedule())
     assert model.target_entropy_beta == pytest.approx(3.5)
     # The next update targets -beta * |A|
     model.train()
@@ -193,6 +179,9 @@ def test_rollouts_act_with_the_averaged_actor():
     assert action == pytest.approx(np.tanh(0.5), abs=1e-5)
 
 
+CPU, CUDA = th.device("cpu"), th.device("cuda")
+
+
 @pytest.mark.parametrize(
     "n_envs, critic_updates, policy_delay, tau, policy_tau",
     [
@@ -201,13 +190,13 @@ def test_rollouts_act_with_the_averaged_actor():
         (16, 4, 4, 1 - 0.995**16, 1 - 0.999**16),  # 16 per update: 16x
     ],
 )
-def test_default_averaging_scales_with_transitions_per_update(n_envs, critic_updates, policy_delay, tau, policy_tau):
-    env = make_vec_env(ConstantRewardEnv, n_envs=n_envs)
-    model = CGAC("MlpPolicy", env, critic_updates_per_step=critic_updates, policy_delay=policy_delay, **SMALL)
-    assert model._tau == pytest.approx(tau) and model._policy_tau == pytest.approx(policy_tau)
-    # Given values are used as they are
-    model = CGAC("MlpPolicy", env, tau=0.3, policy_tau=0.2, **SMALL)
-    assert (model._tau, model._policy_tau) == (0.3, 0.2)
+def test_gpu_averaging_scales_with_transitions_per_update(n_envs, critic_updates, policy_delay, tau, policy_tau):
+    assert resolve_polyak_rates("auto", "auto", n_envs, policy_delay, critic_updates, CUDA) == pytest.approx((tau, policy_tau))
+    # Models saved by 0.1.0 (None) keep its rule on every device
+    assert resolve_polyak_rates(None, None, n_envs, policy_delay, critic_updates, CPU) == pytest.approx((tau, policy_tau))
+    # On a CPU: the MuJoCo entries' rates; given values are used as they are, on every device
+    assert resolve_polyak_rates("auto", "auto", n_envs, policy_delay, critic_updates, CPU) == (0.02, 0.05)
+    assert resolve_polyak_rates(0.3, 0.2, n_envs, policy_delay, critic_updates, CUDA) == (0.3, 0.2)
 
 
 @pytest.mark.parametrize(
@@ -226,55 +215,42 @@ def test_default_averaging_scales_with_transitions_per_update(n_envs, critic_upd
         (1024, 8192, 2),  # never fewer than the paper's 2
     ],
 )
-def test_default_critic_updates_per_step(n_envs, batch_size, expected):
-    """None: 4 below 1024 envs; from 1024 on, each collected transition sampled 8 times (at least the paper's 2)."""
-    updates = resolve_critic_updates_per_step(None, n_envs, batch_size)
+def test_gpu_critic_updates_per_step(n_envs, batch_size, expected):
+    """On a GPU: 4 below 1024 envs; from 1024 on, each collected transition sampled 8 times (at least the paper's 2)."""
+    updates = resolve_critic_updates_per_step("auto", n_envs, batch_size, CUDA)
     assert updates == expected
+    assert resolve_critic_updates_per_step(None, n_envs, batch_size, CPU) == expected  # 0.1.0's rule
     if n_envs >= 1024:
         assert updates * batch_size / n_envs >= 8
         assert updates == 2 or (updates - 1) * batch_size / n_envs < 8, "the smallest count that reaches the floor"
-    assert resolve_critic_updates_per_step(3, n_envs, batch_size) == 3
+    assert resolve_critic_updates_per_step("auto", n_envs, batch_size, CPU) == 4
+    assert resolve_critic_updates_per_step(3, n_envs, batch_size, CUDA) == 3
 
 
 @pytest.mark.parametrize(
-    "n_envs, batch_size, critic_updates_per_step, warns",
+    "n_envs, device, expected",
     [
-        (1024, 512, None, True),  # 16 updates per step, where the paper's batch needs 2
-        (1024, 4096, None, False),
-        (1024, None, None, False),  # None picks the batch: no warning for a choice the user did not make
-        (1024, 512, 2, False),  # a given count is the user's choice
-        (512, 64, None, False),  # below 1024 envs the count is 4 whatever the batch
+        (16, CPU, 512),
+        (8, CPU, 256),
+        (128, CPU, 512),
+        (4096, CPU, 512),
+        (64, CUDA, 2048),
+        (128, CUDA, 4096),
+        (4096, CUDA, 4096),
     ],
 )
-def test_small_batch_at_many_envs_warns(tmp_path, n_envs, batch_size, critic_updates_per_step, warns):
-    env = make_vec_env(ConstantRewardEnv, n_envs=n_envs)
-
-    def update_count_warnings(make_model):
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            make_model().save(tmp_path / "model")
-        return [str(warning.message) for warning in caught if "critic_updates_per_step=None resolves" in str(warning.message)]
-
-    kwargs = dict(batch_size=batch_size, critic_updates_per_step=critic_updates_per_step, **SMALL)
-    messages = update_count_warnings(lambda: CGAC("MlpPolicy", env, **kwargs))
-    assert len(messages) == int(warns)
-    if warns:
-        assert "16 critic updates per env step at n_envs=1024 with batch_size=512" in messages[0]
-    # Loading does not warn again: the warning is for the user's constructor call
-    assert update_count_warnings(lambda: CGAC.load(tmp_path / "model", env=env)) == []
+def test_auto_batch_size(n_envs, device, expected):
+    """512 on a CPU, the paper's 4096 on a GPU, never more than the window of 32 steps."""
+    assert resolve_batch_size("auto", 32, n_envs, device) == expected
+    assert resolve_batch_size(100, 32, n_envs, device) == 100
 
 
-def test_default_critic_updates_in_training(tmp_path):
-    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), batch_size=64, **SMALL)
-    assert model.critic_updates_per_step is None and model._critic_updates_per_step == 4
-    # The averaging rates are scaled with the resolved count: 16 * 2 / 4 = 8 new transitions per actor update
-    assert model._tau == pytest.approx(1 - 0.995 ** np.sqrt(4096 / 8))
-    model.learn(16 * 10)  # the window holds a minibatch of 64 from the 4th step: 7 iterations of updates
-    assert model._n_updates == 7 * 4
-    # A saved None is resolved again for the env it is loaded with (batch_size None: 4096 there); a saved count is kept
-    CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), **SMALL).save(tmp_path / "default")
-    for n_envs, expected in ((1024, 2), (4096, 8)):
-        loaded = CGAC.load(tmp_path / "default", env=make_vec_env(ConstantRewardEnv, n_envs=n_envs))
-        assert loaded.critic_updates_per_step is None and loaded._critic_updates_per_step == expected
-    CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), critic_updates_per_step=2, **SMALL).save(tmp_path / "two")
-    assert CGAC.load(tmp_path / "two", env=make_vec_env(ConstantRewardEnv, n_envs=16))._critic_updates_per_step == 2
+def test_auto_values_are_resolved_on_the_model(tmp_path):
+    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=16), **SMALL)
+    assert (model.batch_size, model.critic_updates_per_step, model.tau, model.policy_tau) == (512, 4, 0.02, 0.05)
+    model.learn(16 * 40)  # the window holds a minibatch of 512 from the 32nd step: 9 iterations of updates
+    assert model._n_updates == 9 * 4
+    # A saved model keeps the numbers it was trained with, wherever it is loaded
+    model.save(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model", env=make_vec_env(ConstantRewardEnv, n_envs=16))
+    assert (loaded.batch_size, loaded.critic_updates_per_step, loaded.tau, loaded.policy_tau) == (512, 4, 0.02, 0.05)

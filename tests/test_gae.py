@@ -147,35 +147,6 @@ def test_ring_wraps_and_computes_only_new_values():
     assert np.allclose(buffer.returns[order, 0].numpy(), expected, atol=1e-5)
 
 
-def test_refresh_draws_next_actions_and_values_of_the_whole_window():
-    buffer = CGACRolloutBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", gamma=GAMMA, gae_lambda=LAMBDA)
-    fill_buffer(buffer, STEPS, terminal_value=7.0)
-    buffer.compute_returns(fake_target_q)
-    size = len(STEPS)
-    sampled = []
-
-    def sampler(obs):
-        # A "policy" whose next action is -obs / 100: every refreshed value is known by hand
-        sampled.append(len(obs))
-        return -obs / 100
-
-    # Without new steps, the stored values stay unless a sampler asks for a refresh
-    buffer.compute_returns(fake_target_q)
-    assert np.allclose(buffer.next_values[:size, 0].numpy(), EXPECTED_NEXT_VALUES)
-    buffer.compute_returns(fake_target_q, next_action_sampler=sampler)
-    assert sampled == [size, 1]  # the window's next observations, then the truncated step's terminal observation
-    next_obs = [1.0, 2.0, 10.0, 11.0, 7.0, 21.0, 100.0]
-    expected_values = [0.99 * value for value in next_obs]
-    assert np.allclose(buffer.next_values[:size, 0].numpy(), expected_values)
-    assert np.allclose(buffer.next_actions[:size, 0, 0].numpy(), [-value / 100 for value in next_obs])
-    rewards = [s[2] for s in STEPS]
-    terminated = [s[3] for s in STEPS]
-    truncated = [s[4] for s in STEPS]
-    expected = literal_q_gae(rewards, expected_values, terminated, truncated, [True] * size)
-    assert np.allclose(buffer.returns[:size, 0].numpy(), expected, atol=1e-5)
-    assert buffer.weights[:size].eq(1).all()
-
-
 def test_nonfinite_transitions_are_excluded():
     buffer = CGACRolloutBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", gamma=GAMMA, gae_lambda=LAMBDA)
     buffer.set_current_obs(th.zeros(1, 1), np.array([True]))
@@ -257,7 +228,6 @@ def test_timeout_bootstrap_infinite_horizon():
         n_steps=4,
         buffer_window=8,
         critic_updates_per_step=4,
-        critic_loss="mse",
         policy_kwargs=dict(net_arch=[32, 32]),
         seed=0,
     )

@@ -59,7 +59,7 @@ def test_pendulum_entry_cuda_graphs(seed):
     """The entry on the GPU with its updates replayed from CUDA graphs (CI has no GPU: run on a machine with one)."""
     model = entry_model(seed, device="cuda", cuda_graphs=True)
     best = reaches_threshold(model, 200_000, seed)
-    assert model._graphed_updates is not None
+    assert model._update_graphs.graphs is not None
     assert best >= THRESHOLD, f"seed {seed}: best mean return {best:.0f} after 200k steps"
 
 

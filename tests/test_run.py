@@ -1,4 +1,5 @@
 from sb3_cgac import CGAC, MultiInputPolicy
+from sb3_cgac.callbacks import RewardEntropySchedule
 
 import gymnasium as gym
 import numpy as np
@@ -10,6 +11,7 @@ from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
@@ -25,21 +27,18 @@ def make_env(n_envs: int = 4, env_id: str = "Pendulum-v1", **kwargs):
         {},  # the paper's schedule: 1 new step per iteration, 32-step window
         dict(n_steps=8, buffer_window=8),  # PPO-like: a fresh buffer every rollout
         dict(n_steps=4, buffer_window=16, batch_size=32, critic_updates_per_step=1, policy_delay=1),
-        dict(critic_loss="mse", ent_coef=0.05),
+        dict(ent_coef=0.05),
         dict(ent_coef="auto", ent_coef_monotone=False, gae_horizon=4, gae_lambda=1.0),
         dict(tau=1.0, policy_tau=1.0),  # no value averaging, no policy averaging
-        dict(clip_actor_gradient_outliers=True, actor_max_grad_norm=1.0),
-        dict(learning_rate=lambda progress: 1e-3 * progress, critic_learning_rate=5e-4, ent_coef_learning_rate=1e-3),
-        dict(policy_kwargs=dict(net_arch=dict(pi=[8], qf=[16, 16]), state_dependent_std=True, n_critics=3)),
+        dict(learning_rate=lambda progress: 1e-3 * progress),
+        dict(learning_rate=LinearSchedule(2e-3, 1e-4, 0.5), ent_coef_monotone=True),
+        dict(policy_kwargs=dict(net_arch=dict(pi=[8], qf=[16, 16]), n_critics=3)),
         dict(policy_kwargs=dict(net_arch=[16], share_features_extractor=True, use_xavier_init=False)),
-        dict(policy_kwargs=dict(net_arch=[16], normalize_observations=True, critic_layer_norm=True)),
+        dict(policy_kwargs=dict(net_arch=[16], normalize_observations=True)),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(weight_decay=0.01))),
-        dict(ent_coef_monotone=True, final_learning_rate=1e-4, lr_decay_iterations=50),
-        dict(update_precision="bfloat16", clip_actor_gradient_outliers=True),
+        dict(update_precision="bfloat16"),
         dict(update_precision="auto"),
-        dict(update_precision="bfloat16", policy_kwargs=dict(net_arch=[16], critic_float32_output=False, stack_critics=True)),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_kwargs=dict(foreach=True))),
-        dict(refresh_target_values=True, n_steps=2),
         dict(predict_tau=0.001),
     ],
 )
@@ -97,12 +96,12 @@ def test_subproc_vec_env():
 
 def test_vec_normalize():
     env = VecNormalize(make_env(), norm_obs=True, norm_reward=True)
-    model = CGAC("MlpPolicy", env, entropy_schedule="reward", **SMALL)
-    model.learn(1000)  # Pendulum truncates at 200 steps: terminal observations come normalized
+    model = CGAC("MlpPolicy", env, **SMALL)
+    schedule = RewardEntropySchedule()
+    model.learn(1000, callback=schedule)  # Pendulum truncates at 200 steps: terminal observations come normalized
     assert model.get_vec_normalize_env() is env
-    assert model._entropy_schedule_callback is not None
     # The reward schedule follows the raw reward (Pendulum: about -1 to -16 per step), not the normalized one
-    assert model._entropy_schedule_callback.reward_average < -1.0
+    assert schedule.reward_average < -1.0
 
 
 def test_callback_can_stop_training():
@@ -237,8 +236,10 @@ def test_multi_input_policy():
 def test_cuda(tmp_path):
     """Training, targets, save/load and predict on the GPU (CI has none; run on a machine with one)."""
     env = VecNormalize(make_env(8))
-    model = CGAC("MlpPolicy", env, device="cuda", clip_actor_gradient_outliers=True, entropy_schedule="reward", **SMALL)
-    model.learn(1000)  # Pendulum truncates at 200 steps: terminal observations go to the GPU too
+    model = CGAC("MlpPolicy", env, device="cuda", **SMALL)
+    model.learn(
+        1000, callback=RewardEntropySchedule()
+    )  # Pendulum truncates at 200 steps: terminal observations go to the GPU too
     assert model.rollout_buffer.returns.is_cuda and next(model.policy.parameters()).is_cuda
     model.save(tmp_path / "cuda_model")
     loaded = CGAC.load(tmp_path / "cuda_model", env=env, device="cpu")

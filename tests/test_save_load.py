@@ -10,6 +10,9 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
+# Models saved by sb3_cgac 0.1.0 (git tag v0.1.0): Pendulum-v1, 16 envs, [16, 16] networks, batch 64, 128 steps;
+# one with the defaults of 0.1.0, one with two options that this release removed
+DATA = pathlib.Path(__file__).parent / "data"
 
 
 def make_env(n_envs: int = 4):
@@ -23,11 +26,10 @@ def state_of(model: CGAC) -> dict[str, th.Tensor]:
     return params
 
 
-@pytest.mark.parametrize("ent_coef, stack_critics", [("auto_0.1", False), (0.05, False), ("auto_0.1", True)])
-def test_save_load(tmp_path: pathlib.Path, ent_coef, stack_critics):
+@pytest.mark.parametrize("ent_coef", ["auto_0.1", 0.05])
+def test_save_load(tmp_path: pathlib.Path, ent_coef):
     env = make_env()
-    policy_kwargs = dict(net_arch=[16, 16], stack_critics=stack_critics)
-    model = CGAC("MlpPolicy", env, ent_coef=ent_coef, policy_tau=0.1, seed=0, policy_kwargs=policy_kwargs)
+    model = CGAC("MlpPolicy", env, ent_coef=ent_coef, policy_tau=0.1, **SMALL)
     model.learn(600)
     # Averaged copies differ from the trained networks, so that a mix-up would show
     assert not th.allclose(model.actor.mu.weight, model.actor_avg.mu.weight)
@@ -135,7 +137,7 @@ def test_save_load_predict_actor(tmp_path):
 def test_save_load_observation_normalizer(tmp_path):
     """The running statistics are saved with the model, and all four networks keep sharing one normalizer."""
     env = make_env()
-    kwargs = dict(policy_kwargs=dict(net_arch=[16, 16], normalize_observations=True, critic_layer_norm=True), seed=0)
+    kwargs = dict(policy_kwargs=dict(net_arch=[16, 16], normalize_observations=True), seed=0)
     model = CGAC("MlpPolicy", env, **kwargs)
     model.learn(400)
     normalizer = model.policy.obs_normalizer
@@ -152,3 +154,27 @@ def test_save_load_observation_normalizer(tmp_path):
     count = float(loaded.policy.obs_normalizer.count)
     loaded.learn(100, reset_num_timesteps=False)
     assert float(loaded.policy.obs_normalizer.count) > count
+
+
+def test_load_a_model_of_the_previous_release(tmp_path):
+    """A model saved by 0.1.0 with its defaults loads, acts as it did there, trains on and saves again."""
+    env = make_vec_env("Pendulum-v1", n_envs=16, seed=0)
+    model = CGAC.load(DATA / "cgac-0.1.0-pendulum", env=env)
+    obs = np.linspace(-1, 1, 30, dtype=np.float32).reshape(10, 3)
+    expected = np.load(DATA / "cgac-0.1.0-pendulum-actions.npy")
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], expected)
+    # 0.1.0's None values resolve by 0.1.0's rules (batch 64 was given; 4 critic updates, scaled Polyak rates)
+    assert (model.batch_size, model.critic_updates_per_step) == (64, 4)
+    assert model.tau == pytest.approx(1 - 0.995 ** np.sqrt(4096 / 8))
+    assert not hasattr(model, "behaviour_kl_coef") and "stack_critics" not in model.policy_kwargs
+    model.learn(16 * 4, reset_num_timesteps=False)
+    model.save(tmp_path / "again")
+    again = CGAC.load(tmp_path / "again", env=env)
+    assert again.tau == model.tau and again.batch_size == 64
+
+
+def test_a_model_with_removed_options_names_the_release():
+    with pytest.raises(ValueError, match=r"entropy_schedule='reward'.*behaviour_kl_coef=1.0|behaviour_kl_coef=1.0.*v0\.1\.0"):
+        CGAC.load(DATA / "cgac-0.1.0-removed-options")
+    with pytest.raises(ValueError, match=r"sb3_cgac 0\.1\.0 \(git tag v0\.1\.0\)"):
+        CGAC.load(DATA / "cgac-0.1.0-removed-options")

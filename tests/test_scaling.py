@@ -1,4 +1,4 @@
-"""sb3_cgac.scaling: time to a fraction of the best return against the action dimensions; the compare summary it reads."""
+"""experiments/scaling.py: time to a fraction of the best return against the action dims; the compare summary it reads."""
 
 import numpy as np
 import pytest
@@ -6,9 +6,8 @@ import pytest
 pytest.importorskip("pandas")
 pytest.importorskip("matplotlib")
 
-from sb3_cgac.scaling import main, time_to_fraction
-
 import pandas as pd
+from scaling import main, time_to_fraction  # experiments/ is on sys.path (conftest.py)
 
 
 def evaluations(run: str, seed: int, returns: list[float]) -> list[dict]:

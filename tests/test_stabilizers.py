@@ -1,7 +1,6 @@
-"""Observation normalisation inside the policy, LayerNorm critics, the learning-rate decay and desynchronised resets."""
+"""Observation normalisation inside the policy, the learning-rate decay, predict_tau and desynchronised resets."""
 
 from sb3_cgac import CGAC
-from sb3_cgac.losses import behaviour_kl
 from sb3_cgac.policies import CGACPolicy, RunningObsNormalizer
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
@@ -10,6 +9,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import LinearSchedule
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 
@@ -48,18 +48,6 @@ def test_normalize_observations_rejects_dict_spaces():
         CGAC("MultiInputPolicy", make_vec_env(DictObsEnv, n_envs=2), policy_kwargs=dict(normalize_observations=True))
 
 
-def test_critic_layer_norm():
-    model = CGAC(
-        "MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), policy_kwargs=dict(net_arch=[8, 8], critic_layer_norm=True)
-    )
-    for critic in (model.critic, model.critic_target):
-        for q_net in critic.q_networks:
-            kinds = [type(layer).__name__ for layer in q_net]
-            assert kinds == ["Linear", "LayerNorm", "ELU", "Linear", "LayerNorm", "ELU", "Linear"]
-    # The LayerNorm parameters are trained and averaged like the others
-    assert len(list(model.critic.parameters())) == len(list(model.critic_target.parameters())) == 2 * 10
-
-
 def test_mean_init_scale(tmp_path):
     env = make_vec_env("Pendulum-v1", n_envs=4)
     obs = th.as_tensor(env.reset(), dtype=th.float32)
@@ -85,67 +73,26 @@ def test_mean_init_scale(tmp_path):
     th.testing.assert_close(loaded.policy.actor_avg.mu.weight, small.policy.actor_avg.mu.weight)
 
 
-def test_learning_rate_decay():
-    """The authors' schedule: linear from the initial to the final rate over lr_decay_iterations iterations."""
-    model = CGAC(
-        "MlpPolicy",
-        make_vec_env("Pendulum-v1", n_envs=4),
-        learning_rate=2e-3,
-        final_learning_rate=1e-4,
-        lr_decay_iterations=100,
-        **SMALL,
-    )
-    model.learn(4 * 72)  # updates start once the window holds 32 steps: 40 iterations of updates
-    iterations = model._n_updates // model._critic_updates_per_step
-    # The rate set at the start of the last iteration, before its updates
-    expected = 2e-3 + (iterations - 1) / 100 * (1e-4 - 2e-3)
-    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(expected)
-    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(expected)
-    # Alpha's rate stays at 10x the initial rate, as in the authors' code
-    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(2e-2)
-    model.learn(4 * 100, reset_num_timesteps=False)
-    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
-
-
-def test_ent_coef_learning_rate_decay(tmp_path):
-    """decay_ent_coef_learning_rate scales alpha's rate by the actor rate's decay factor: 10x the actor's throughout."""
-    kwargs = dict(learning_rate=2e-3, final_learning_rate=1e-4, lr_decay_iterations=100, **SMALL)
-    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), decay_ent_coef_learning_rate=True, **kwargs)
-    model.learn(4 * 72)
-    actor_lr = model.actor.optimizer.param_groups[0]["lr"]
-    assert actor_lr < 2e-3
-    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(10 * actor_lr)
-    assert model.logger.name_to_value["train/ent_coef_learning_rate"] == pytest.approx(10 * actor_lr)
-    # A separate alpha rate decays by the same factor
-    model = CGAC(
-        "MlpPolicy",
-        make_vec_env("Pendulum-v1", n_envs=4),
-        decay_ent_coef_learning_rate=True,
-        ent_coef_learning_rate=3e-3,
-        **kwargs,
-    )
-    model.learn(4 * 72)
-    factor = model.actor.optimizer.param_groups[0]["lr"] / 2e-3
-    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * factor)
-    # The option is saved with the model: a loaded model goes on decaying alpha's rate
+def test_learning_rate_decay(tmp_path):
+    """The authors' decay as an SB3 schedule: linear from 2e-3 to 1e-4 over half of training, alpha's rate 10x along."""
+    schedule = LinearSchedule(2e-3, 1e-4, 0.5)
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), learning_rate=schedule, **SMALL)
+    model.learn(4 * 100)
+    # The last iteration's updates run at progress remaining 0: the end of the decay
+    for optimizer, factor in ((model.actor.optimizer, 1), (model.critic.optimizer, 1), (model.ent_coef_optimizer, 10)):
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(factor * 1e-4)
+    # A quarter of the way: half of the decay
+    model._current_progress_remaining = 0.75
+    model._update_learning_rates()
+    middle = 2e-3 + 0.5 * (1e-4 - 2e-3)
+    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(middle)
+    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(middle)
+    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(10 * middle)
+    assert model.logger.name_to_value["train/learning_rate"] == pytest.approx(middle)
+    # The schedule is saved with the model
     model.save(tmp_path / "model")
     loaded = CGAC.load(tmp_path / "model", env=make_vec_env("Pendulum-v1", n_envs=4))
-    assert loaded.decay_ent_coef_learning_rate is True
-    loaded.learn(4 * 8, reset_num_timesteps=False)
-    factor = loaded.actor.optimizer.param_groups[0]["lr"] / 2e-3
-    assert loaded.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * factor)
-
-
-def test_bad_learning_rate_decay():
-    with pytest.raises(ValueError, match="final_learning_rate"):
-        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=-1.0)
-    with pytest.raises(ValueError, match="lr_decay_iterations"):
-        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=1e-4, lr_decay_iterations=0)
-    with pytest.raises(ValueError, match="set final_learning_rate"):
-        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), decay_ent_coef_learning_rate=True)
-    with pytest.raises(ValueError, match="ent_coef='auto'"):
-        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), final_learning_rate=1e-4, ent_coef=0.1,
-             decay_ent_coef_learning_rate=True)  # fmt: skip
+    assert loaded.lr_schedule(0.75) == pytest.approx(middle)
 
 
 def test_random_first_episode_length():
@@ -219,57 +166,6 @@ def test_warns_about_synchronised_resets():
         CGAC("MlpPolicy", env, **kwargs).learn(16 * 401)
 
 
-def test_behaviour_kl_matches_torch_distributions():
-    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4), device="cpu", **SMALL)
-    obs = th.randn(32, 3)
-    weights, weight_sum = th.ones(32), th.tensor(32.0)
-    # Identical actors: no penalty
-    assert behaviour_kl(model.actor, model.actor_avg, obs, weights, weight_sum).item() == pytest.approx(0.0, abs=1e-6)
-    with th.no_grad():
-        for param in model.actor.parameters():
-            param.add_(0.1 * th.randn_like(param))
-    kl = behaviour_kl(model.actor, model.actor_avg, obs, weights, weight_sum)
-    mean_b, log_std_b = model.actor_avg.get_action_dist_params(obs)
-    mean, log_std = model.actor.get_action_dist_params(obs)
-    expected = th.distributions.kl_divergence(
-        th.distributions.Normal(mean_b, log_std_b.exp()), th.distributions.Normal(mean, log_std.exp())
-    ).sum(dim=-1)
-    assert kl.item() == pytest.approx(expected.mean().item(), rel=1e-4)
-    assert kl.item() > 0
-    # Its gradient reaches the trained actor only
-    kl.backward()
-    assert all(param.grad is None for param in model.actor_avg.parameters())
-    assert model.actor.mu.weight.grad is not None
-
-
-def test_behaviour_kl_coef_keeps_the_actor_near_the_averaged_actor():
-    def gap(coef: float) -> float:
-        env = make_vec_env("Pendulum-v1", n_envs=8)
-        model = CGAC("MlpPolicy", env, behaviour_kl_coef=coef, policy_tau=0.001, batch_size=64, **SMALL)
-        model.learn(800)
-        obs = th.randn(256, 3, device=model.device)
-        with th.no_grad():
-            mean, _ = model.actor.get_action_dist_params(obs)
-            mean_b, _ = model.actor_avg.get_action_dist_params(obs)
-        return (mean - mean_b).abs().mean().item()
-
-    assert gap(100.0) < 0.5 * gap(0.0)
-
-
-@pytest.mark.parametrize("refresh", [False, True])
-def test_refresh_target_values(refresh):
-    env = make_vec_env("Pendulum-v1", n_envs=4)
-    model = CGAC("MlpPolicy", env, refresh_target_values=refresh, buffer_window=8, batch_size=16, **SMALL)
-    model.learn(4 * 12)
-    before = model.rollout_buffer.next_actions.clone()
-    model.learn(4 * 2, reset_num_timesteps=False)
-    buffer = model.rollout_buffer
-    # The two newest steps are new either way; the six older ones keep their next actions unless refreshed
-    older = [(buffer.pos + k) % buffer.buffer_window for k in range(buffer.buffer_window - 2)]
-    changed = (buffer.next_actions[older] != before[older]).any(dim=-1)
-    assert changed.all() if refresh else not changed.any()
-
-
 def test_predict_tau_leaves_training_unchanged():
     """The slower average for predict() is only read by predict(): the same seed trains the same networks."""
 
@@ -278,7 +174,7 @@ def test_predict_tau_leaves_training_unchanged():
         model.learn(4 * 60)
         return model
 
-    plain, slow = train(None), train(0.05)
+    plain, slow = train(None), train(0.2)  # a rate unlike the averaged actor's (policy_tau 0.05)
     assert plain.policy.actor_predict is None and slow.policy.actor_predict is not None
     slow_state = slow.policy.state_dict()
     for name, value in plain.policy.state_dict().items():

@@ -54,12 +54,11 @@ def test_train_cgac_from_our_yaml_with_flags(tmp_path):
 
 
 def test_yaml_callback_and_cgac_keys(tmp_path):
-    """A YAML `callback:` entry (the entropy schedule) and CGAC-specific keys, including lin_ schedules."""
+    """A YAML `callback:` entry (the entropy schedule) and CGAC-specific keys, including the lin_ decay schedule."""
     entry = yaml.safe_load((HYPERPARAMS_DIR / "cgac.yml").read_text())["Pendulum-v1"]
     entry.update(
         n_envs=8,
-        critic_learning_rate="lin_1e-3",
-        ent_coef_learning_rate=0.01,
+        learning_rate="lin_2e-3_1e-4_0.5",
         gae_horizon=4,
         callback=[{"sb3_cgac.callbacks.ProgressEntropySchedule": {"beta_init": 0.5, "beta_final": 2.5}}],
     )
@@ -68,7 +67,8 @@ def test_yaml_callback_and_cgac_keys(tmp_path):
     train(["--algo", "cgac", "--env", "Pendulum-v1", "-n", "400", "-conf", str(conf), "-f", str(tmp_path), "--seed", "0"])
     model = CGAC.load(run_dir(tmp_path, "cgac", "Pendulum-v1") / "Pendulum-v1.zip")
     assert model.target_entropy_beta == pytest.approx(2.5)  # the schedule ran to its end
-    assert model.critic_lr_schedule(0.5) == pytest.approx(5e-4) and model.gae_horizon == 4
+    assert model.lr_schedule(0.75) == pytest.approx(2e-3 + 0.5 * (1e-4 - 2e-3)) and model.gae_horizon == 4
+    assert model.lr_schedule(0.25) == pytest.approx(1e-4)
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
@@ -136,6 +136,48 @@ def test_every_yaml_entry_builds(tmp_path, name, env_id):
     model.get_env().close()
 
 
+# What the CGAC entries resolve to on a CPU: the update settings of their 0.1.0 spelling (batch, critic updates per
+# step, tau, policy_tau; the Pendulum-v1 entry's batch was 2,048 in 0.1.0) and their learning rate at the start and
+# after the decay
+ENTRY_SETTINGS = {
+    "Pendulum-v1": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
+    "HalfCheetah-v5": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
+    "Hopper-v5": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
+    "Walker2d-v5": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
+    "Ant-v5": ((512, 2, 0.02, 1.0), 2e-3, 1e-4),
+    "Humanoid-v5": ((512, 2, 0.02, 1.0), 2e-3, 4e-4),
+    "AdroitHandPen-v1": ((512, 2, 0.05, 1.0), 1e-3, 2e-4),
+}
+
+
+@pytest.mark.parametrize("env_id", list(ENTRY_SETTINGS))
+def test_cgac_entries_resolve_to_their_settings(tmp_path, env_id):
+    register()
+    if env_id not in gym.registry:
+        pytest.skip(f"{env_id} is not installed")
+    backend = "envpool" if env_id.endswith("-v5") else "dummy"
+    if backend == "envpool":
+        pytest.importorskip("envpool")
+    model, _ = build_model("cgac", env_id, backend=backend, log_folder=str(tmp_path), device="cpu")
+    (expected, start, end) = ENTRY_SETTINGS[env_id]
+    assert (model.batch_size, model.critic_updates_per_step, model.tau, model.policy_tau) == expected
+    assert model.lr_schedule(1.0) == pytest.approx(start) and model.lr_schedule(0.0) == pytest.approx(end)
+    model.get_env().close()
+
+
+def test_compare_schedules_follow_the_planned_timesteps():
+    from sb3_cgac.compare import follow_planned_progress
+
+    from stable_baselines3.common.utils import LinearSchedule
+
+    model = CGAC("MlpPolicy", "Pendulum-v1", learning_rate=LinearSchedule(2e-3, 1e-4, 0.5), device="cpu")
+    follow_planned_progress(model, 1000)
+    model._update_current_progress_remaining(250, 10**12)  # learn()'s own total is ignored
+    assert model._current_progress_remaining == pytest.approx(0.75)
+    model._update_current_progress_remaining(5000, 10**12)  # past the plan: the schedule's end
+    assert model._current_progress_remaining == 0.0 and model.lr_schedule(0.0) == pytest.approx(1e-4)
+
+
 def test_compare_script_tiny_budget(tmp_path):
     out = tmp_path / "cmp"
     result = subprocess.run(
@@ -175,8 +217,8 @@ def test_compare_script_tiny_budget(tmp_path):
 def test_compare_records_train_stats(tmp_path):
     """Each evaluation's row of runs/<run>_seed<k>_train.csv holds the latest train/* values: none before training."""
     out = tmp_path / "cmp"
-    # The Pendulum-v1 entry's updates start once its window holds 2048 transitions; with its 64 envs, 2560 steps end
-    # right on the evaluation scheduled every 1280 steps
+    # The Pendulum-v1 entry's updates start once its window holds 512 transitions (8 steps of its 64 envs); 2560 steps
+    # end right on the evaluation scheduled every 1280 steps
     result = subprocess.run(
         [sys.executable, "-m", "sb3_cgac.compare", "--env", "Pendulum-v1", "--runs", "cgac", "--seeds", "1",
          "--steps", "2560", "--eval-every", "0.5", "--eval-episodes", "2", "--eval-envs", "2", "--out", str(out)],
@@ -191,9 +233,9 @@ def test_compare_records_train_stats(tmp_path):
     assert [row["seconds"] for row in stats] == [row["seconds"] for row in evaluations]
     assert stats[0]["ent_coef"] == "" and stats[0]["entropy"] == ""
     assert float(stats[-1]["ent_coef"]) > 0 and np.isfinite(float(stats[-1]["entropy"]))
-    # The last row is the final model: 4 critic updates at each of the 9 iterations from 2048 to 2560 steps, the last
-    # one after the evaluation scheduled at 2560 (which would show 32)
-    assert int(stats[-1]["n_updates"]) == 9 * 4
+    # The last row is the final model: 4 critic updates at each of the 33 iterations from 512 to 2560 steps, the last
+    # one after the evaluation scheduled at 2560 (which would show 128)
+    assert int(stats[-1]["n_updates"]) == 33 * 4
 
 
 def test_record_train_stats_rollout_episodes(tmp_path):
@@ -231,27 +273,25 @@ def test_compare_success_rate(tmp_path):
 def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
-        [sys.executable, "-m", "sb3_cgac.ablations", "--env", "Pendulum-v1", "--variants", "cgac", "no_pol_avg",
-         "n_envs_16", "critic_layer_norm", "weight_decay", "policy_obs_norm", "--seeds", "1", "--steps", "640",
+        [sys.executable, str(ROOT / "experiments" / "ablations.py"), "--env", "Pendulum-v1", "--variants", "cgac",
+         "no_pol_avg", "n_envs_16", "lr_decay", "weight_decay", "policy_obs_norm", "--seeds", "1", "--steps", "640",
          "--jobs", "2", "--eval-episodes", "1", "--eval-envs", "1", "--out", str(out)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     table = (out / "summary.md").read_text()
     assert "best of cgac's final returns" in table
-    for variant in ("cgac", "no_pol_avg", "n_envs_16", "critic_layer_norm", "weight_decay", "policy_obs_norm"):
+    for variant in ("cgac", "no_pol_avg", "n_envs_16", "lr_decay", "weight_decay", "policy_obs_norm"):
         assert f"| {variant} |" in table
 
 
 def test_ablation_variants_merge_policy_kwargs():
-    from sb3_cgac.ablations import entry_variants
+    from ablations import entry_variants  # experiments/ is on sys.path (conftest.py)
 
     entry = {"n_envs": 64, "batch_size": 2048, "policy_kwargs": "dict(net_arch=[64, 64], mean_init_scale=0.01)"}
     variants = entry_variants(entry)
     # The zoo evaluates the string: a variant adds its keys to the entry's and replaces the ones it names
-    assert eval(variants["critic_layer_norm"]["policy_kwargs"]) == dict(
-        net_arch=[64, 64], mean_init_scale=0.01, critic_layer_norm=True
-    )
+    assert eval(variants["small_mean_init"]["policy_kwargs"]) == dict(net_arch=[64, 64], mean_init_scale=0.01)
     assert eval(variants["full_mean_init"]["policy_kwargs"]) == dict(net_arch=[64, 64], mean_init_scale=1.0)
     assert eval(entry_variants({"n_envs": 64})["small_mean_init"]["policy_kwargs"]) == dict(mean_init_scale=0.01)
     # The new stabilisers: AdamW's weight decay, a wider critic beside the entry's actor, observation normalisation
@@ -272,12 +312,12 @@ def test_ablation_variants_merge_policy_kwargs():
     assert variants["policy_obs_norm"]["normalize"] is False
     assert eval(variants["policy_obs_norm"]["policy_kwargs"])["normalize_observations"] is True
     # Env-count variants; the entry's batch does not fit in 16 envs x 32 steps, so the smaller one uses the default
-    assert variants["n_envs_16"] == {"n_envs": 16, "batch_size": None} and variants["n_envs_256"] == {"n_envs": 256}
+    assert variants["n_envs_16"] == {"n_envs": 16, "batch_size": "auto"} and variants["n_envs_256"] == {"n_envs": 256}
 
 
 def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys, monkeypatch):
-    import sb3_cgac.ablations
-    from sb3_cgac.ablations import main
+    import ablations
+    from ablations import main
 
     with pytest.raises(SystemExit):
         main(["--help"])
@@ -297,11 +337,11 @@ def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys, monkeypatch):
     # The variants change the entry the runs read: --conf-dir's, not the package's
     (tmp_path / "cgac.yml").write_text("Pendulum-v1:\n  n_envs: 8\n  policy_kwargs: 'dict(net_arch=[16])'\n")
     calls = []
-    monkeypatch.setattr(sb3_cgac.ablations, "compare_main", lambda **kwargs: calls.append(kwargs))
-    main(["--env=Pendulum-v1", "--steps", "10", "--conf-dir", str(tmp_path), "--variants", "critic_layer_norm"])
+    monkeypatch.setattr(ablations, "compare_main", lambda **kwargs: calls.append(kwargs))
+    main(["--env=Pendulum-v1", "--steps", "10", "--conf-dir", str(tmp_path), "--variants", "small_mean_init"])
     (call,) = calls
-    overrides = call["runs"]["critic_layer_norm"]["overrides"]
-    assert eval(overrides["policy_kwargs"]) == dict(net_arch=[16], critic_layer_norm=True)
+    overrides = call["runs"]["small_mean_init"]["overrides"]
+    assert eval(overrides["policy_kwargs"]) == dict(net_arch=[16], mean_init_scale=0.01)
     argv = call["argv"]
     assert argv[argv.index("--conf-dir") + 1] == str(tmp_path) and argv[argv.index("--env") + 1] == "Pendulum-v1"
     assert argv[argv.index("--out") + 1] == str(pathlib.Path("results") / "ablations-Pendulum-v1")

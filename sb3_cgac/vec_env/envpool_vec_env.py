@@ -5,7 +5,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
-from sb3_cgac.threads import THREAD_SPIN_CONFIGURED
+from sb3_cgac.threads import thread_spin_configured
 from sb3_cgac.vec_env.gymnasium_vec_env import BatchObs, GymnasiumVecEnv
 
 import gymnasium as gym
@@ -23,11 +23,12 @@ def _import_envpool() -> Any:
 
 
 def _warn_if_torch_spins() -> None:
-    if not THREAD_SPIN_CONFIGURED:
+    if not thread_spin_configured():
         warnings.warn(
-            "torch was imported before sb3_cgac, so torch's OpenMP threads spin for milliseconds after each op and "
-            "slow envpool's threads down (on 2 cores, CGAC's collection dropped from a median 82% to about 60% of "
-            "envpool's speed). Import sb3_cgac before torch, or start Python with GOMP_SPINCOUNT=10000.",
+            "torch's OpenMP threads spin for milliseconds after each op and slow envpool's threads down (on 2 cores, "
+            "CGAC's collection dropped from a median 82% to about 60% of envpool's speed). Call "
+            "sb3_cgac.threads.configure_thread_spin() before anything imports torch, or start Python with "
+            "GOMP_SPINCOUNT=10000.",
             UserWarning,
             stacklevel=3,
         )
