@@ -4,6 +4,13 @@ import math
 from typing import Any
 
 from sb3_cgac.critics import CGACCritic, xavier_init
+from sb3_cgac.torch_layers import (
+    DictKeysExtractor,
+    DictObsNormalizer,
+    NormalizedFeaturesExtractor,
+    ObsNormalizer,
+    RunningObsNormalizer,
+)
 
 import numpy as np
 import torch as th
@@ -26,74 +33,8 @@ LOG_STD_MAX = 2
 LOG_STD_MIN = -20
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))  # as torch.distributions.Normal computes it
 TANH_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution's epsilon in the log-probability of tanh(x)
-# The authors' code clips normalised observations at +-5
-OBS_CLIP = 5.0
 # Hidden layers of actor and critics when policy_kwargs name no net_arch (the paper's Table 1)
 DEFAULT_NET_ARCH = [256, 256]
-
-
-class RunningObsNormalizer(nn.Module):
-    """
-    Running mean and variance of the observations (merged batch by batch, as SB3's ``RunningMeanStd``), applied as
-    ``clip((obs - mean) / sqrt(var + eps), -clip, +clip)``. The statistics are buffers: they are saved with the
-    policy and loaded with it, and Polyak updates (which average parameters) leave them alone.
-
-    :param shape: Shape of one observation
-    :param clip: Bound on the normalised values (5 in the authors' code)
-    :param epsilon: Added to the variance, and the initial count
-    """
-
-    mean: th.Tensor
-    var: th.Tensor
-    count: th.Tensor
-
-    def __init__(self, shape: tuple[int, ...], clip: float = OBS_CLIP, epsilon: float = 1e-8):
-        super().__init__()
-        self.clip = clip
-        self.epsilon = epsilon
-        self.register_buffer("mean", th.zeros(shape))
-        self.register_buffer("var", th.ones(shape))
-        self.register_buffer("count", th.tensor(1e-4))
-
-    @th.no_grad()
-    def update(self, obs: th.Tensor) -> None:
-        """
-        Merge a batch of observations into the statistics.
-
-        :param obs: Observations, shape (batch, *shape)
-        """
-        obs = obs.float()
-        batch_count = obs.shape[0]
-        batch_mean, batch_var = obs.mean(dim=0), obs.var(dim=0, unbiased=False)
-        delta = batch_mean - self.mean
-        total = self.count + batch_count
-        self.var.copy_((self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total)
-        self.mean.add_(delta * batch_count / total)
-        self.count.copy_(total)
-
-    def forward(self, obs: th.Tensor) -> th.Tensor:
-        return ((obs - self.mean) / th.sqrt(self.var + self.epsilon)).clamp(-self.clip, self.clip)
-
-
-class NormalizedFeaturesExtractor(BaseFeaturesExtractor):
-    """
-    A features extractor preceded by observation normalisation. The policy shares one normalizer between all its
-    networks (actor, critics and their averaged copies), so that they all see the same inputs.
-
-    :param observation_space: Observation space
-    :param features_extractor: The features extractor that receives the normalised observations
-    :param normalizer: The shared running normalizer
-    """
-
-    def __init__(
-        self, observation_space: spaces.Space, features_extractor: BaseFeaturesExtractor, normalizer: RunningObsNormalizer
-    ):
-        super().__init__(observation_space, features_extractor.features_dim)
-        self.extractor = features_extractor
-        self.normalizer = normalizer
-
-    def forward(self, observations: th.Tensor) -> th.Tensor:
-        return self.extractor(self.normalizer(observations))
 
 
 class Actor(BasePolicy):
@@ -249,7 +190,11 @@ class CGACPolicy(BasePolicy):
     :param share_features_extractor: Whether actor and critic share the features extractor
     :param normalize_observations: Normalise observations with running statistics inside the policy, clipped at
         +-5 (the authors' code always does), so that no ``VecNormalize`` is needed; the statistics are updated
-        from the collected observations and saved with the model (Box observations only)
+        from the collected observations and saved with the model (a Dict observation: each Box entry on its own)
+    :param actor_keys: For a Dict observation, the keys the actor (and so ``predict()`` and exported policies)
+        reads, e.g. ``["state"]``: what the robot senses (None: every key)
+    :param critic_keys: For a Dict observation, the keys the critics read, e.g. ``["state", "privileged_state"]``
+        (None: every key). With ``actor_keys`` this is an asymmetric actor-critic
     :param predict_actor: Whether to keep a third copy of the actor, ``actor_predict``, that ``predict()`` acts with
         (set by CGAC's ``predict_tau``, which averages it); False: ``predict()`` acts with the averaged actor
     """
@@ -278,6 +223,8 @@ class CGACPolicy(BasePolicy):
         n_critics: int = 2,
         share_features_extractor: bool = False,
         normalize_observations: bool = False,
+        actor_keys: list[str] | None = None,
+        critic_keys: list[str] | None = None,
         predict_actor: bool = False,
     ):
         super().__init__(
@@ -309,14 +256,23 @@ class CGACPolicy(BasePolicy):
         self.share_features_extractor = share_features_extractor
         self.normalize_observations = normalize_observations
         self.predict_actor = predict_actor
-        self.obs_normalizer: RunningObsNormalizer | None = None
+        self.actor_keys = self._check_keys("actor_keys", actor_keys)
+        self.critic_keys = self._check_keys("critic_keys", critic_keys)
+        if share_features_extractor and self.actor_keys != self.critic_keys:
+            raise ValueError(
+                "CGACPolicy: share_features_extractor=True needs the actor and the critics to read the same keys, got "
+                f"actor_keys={actor_keys} and critic_keys={critic_keys}; set share_features_extractor=False."
+            )
+        self.obs_normalizer: ObsNormalizer | None = None
         if normalize_observations:
-            if not isinstance(self.observation_space, spaces.Box):
+            if isinstance(self.observation_space, spaces.Dict):
+                self.obs_normalizer = DictObsNormalizer(self.observation_space)
+            elif isinstance(self.observation_space, spaces.Box):
+                self.obs_normalizer = RunningObsNormalizer(self.observation_space.shape)
+            else:
                 raise ValueError(
-                    f"CGACPolicy: normalize_observations needs a Box observation space, got {self.observation_space}. "
-                    "Normalise Dict observations with VecNormalize instead."
+                    f"CGACPolicy: normalize_observations needs a Box or Dict observation space, got {self.observation_space}."
                 )
-            self.obs_normalizer = RunningObsNormalizer(self.observation_space.shape)
         net_args = {
             "observation_space": self.observation_space,
             "action_space": self.action_space,
@@ -395,13 +351,39 @@ class CGACPolicy(BasePolicy):
                 n_critics=self.critic_kwargs["n_critics"],
                 share_features_extractor=self.share_features_extractor,
                 normalize_observations=self.normalize_observations,
+                actor_keys=self.actor_keys,
+                critic_keys=self.critic_keys,
                 predict_actor=self.predict_actor,
             )
         )
         return data
 
-    def make_features_extractor(self) -> BaseFeaturesExtractor:
-        features_extractor = super().make_features_extractor()
+    def _check_keys(self, name: str, keys: list[str] | None) -> list[str] | None:
+        if keys is None:
+            return None
+        space = self.observation_space
+        if not isinstance(space, spaces.Dict):
+            raise ValueError(f"CGACPolicy: {name} needs a Dict observation space (MultiInputPolicy), got {space}.")
+        unknown = [key for key in keys if key not in space.spaces]
+        if unknown or not keys:
+            raise ValueError(
+                f"CGACPolicy: {name}={list(keys)} names {unknown or 'no key'}; the observation's keys are "
+                f"{list(space.spaces)}."
+            )
+        return list(keys)
+
+    def make_features_extractor(self, keys: list[str] | None = None) -> BaseFeaturesExtractor:
+        """
+        :param keys: The keys of a Dict observation that the extractor reads (None: all)
+        :return: A features extractor, after the shared observation normalisation when there is one
+        """
+        if keys is None:
+            features_extractor = super().make_features_extractor()
+        else:
+            assert isinstance(self.observation_space, spaces.Dict)
+            features_extractor = DictKeysExtractor(
+                self.observation_space, keys, self.features_extractor_class, self.features_extractor_kwargs
+            )
         if self.obs_normalizer is None:
             return features_extractor
         return NormalizedFeaturesExtractor(self.observation_space, features_extractor, self.obs_normalizer)
@@ -413,17 +395,35 @@ class CGACPolicy(BasePolicy):
         :param obs: Observations, one row per env
         :param ok: Which rows are usable (the others were non-finite and zeroed)
         """
-        if self.obs_normalizer is not None:
-            assert isinstance(obs, th.Tensor)
+        if self.obs_normalizer is None:
+            return
+        if isinstance(obs, dict):
+            rows = slice(None) if ok.all() else th.as_tensor(ok, device=next(iter(obs.values())).device)
+            assert isinstance(self.obs_normalizer, DictObsNormalizer)
+            self.obs_normalizer.update({key: value[rows] for key, value in obs.items()})
+        else:
+            assert isinstance(self.obs_normalizer, RunningObsNormalizer)
             self.obs_normalizer.update(obs if ok.all() else obs[th.as_tensor(ok, device=obs.device)])
 
     def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
+        features_extractor = features_extractor or self.make_features_extractor(self.actor_keys)
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return Actor(**actor_kwargs).to(self.device)
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> CGACCritic:
+        features_extractor = features_extractor or self.make_features_extractor(self.critic_keys)
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return CGACCritic(**critic_kwargs).to(self.device)
+
+    def obs_to_tensor(self, observation: np.ndarray | dict[str, np.ndarray]) -> tuple[PyTorchObs, bool]:
+        # predict() needs only the actor's keys of a Dict observation: the others may be left out
+        if isinstance(observation, dict) and self.actor_keys is not None:
+            missing = [key for key in self.actor_keys if key not in observation]
+            if missing:
+                raise ValueError(
+                    f"CGACPolicy: the observation lacks the actor's keys {missing} (actor_keys={self.actor_keys})."
+                )
+        return super().obs_to_tensor(observation)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)
@@ -470,7 +470,7 @@ MlpPolicy = CGACPolicy
 class MultiInputPolicy(CGACPolicy):
     """
     Policy class for CGAC with Dict observations: ``CGACPolicy`` with a ``CombinedExtractor`` as default features
-    extractor (``normalize_observations`` is not supported there: use ``VecNormalize``).
+    extractor; ``actor_keys`` and ``critic_keys`` choose which keys the actor and the critics read.
 
     :param observation_space: Observation space (a Dict)
     :param action_space: Action space

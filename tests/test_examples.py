@@ -28,3 +28,16 @@ def test_zoo_usage(tmp_path):
     stdout = run_example("zoo_usage.py", "--env", "Pendulum-v1", "--backend", "dummy", "--timesteps", "640", cwd=tmp_path)
     assert "Pendulum-v1: CGAC with 64 envs" in stdout
     assert (tmp_path / "cgac_zoo" / "model.zip").exists()
+
+
+def test_export_go1(tmp_path):
+    """Trains Go1 for a few hundred steps, exports the actor to ONNX and replays it in the env."""
+    pytest.importorskip("onnxruntime")
+    envpool = pytest.importorskip("envpool")
+    if "Go1JoystickFlatTerrain-v1" not in envpool.list_all_envs():
+        pytest.skip("this envpool has no MuJoCo Playground tasks (envpool >= 1.2.5)")
+    args = ("--timesteps", "1024", "--n-envs", "16", "--replay-steps", "50", "--output", "go1.onnx")
+    stdout = run_example("export_go1.py", *args, cwd=tmp_path)
+    assert (tmp_path / "go1.onnx").exists()
+    gap = float(stdout.split("largest gap to predict(): ")[1].split()[0])
+    assert gap < 1e-5, stdout

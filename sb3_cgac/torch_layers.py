@@ -1,0 +1,134 @@
+"""
+Layers of CGAC's policy that act on observations: running normalisation inside the policy (of a Box observation, or of
+each Box entry of a Dict observation), and features extractors that read only some keys of a Dict observation (an
+actor on what the robot senses, critics on privileged simulator state too).
+"""
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.type_aliases import PyTorchObs
+from torch import nn
+
+# The authors' code clips normalised observations at +-5
+OBS_CLIP = 5.0
+
+
+class RunningObsNormalizer(nn.Module):
+    """
+    Running mean and variance of the observations (merged batch by batch, as SB3's ``RunningMeanStd``), applied as
+    ``clip((obs - mean) / sqrt(var + eps), -clip, +clip)``. The statistics are buffers: they are saved with the
+    policy and loaded with it, and Polyak updates (which average parameters) leave them alone.
+
+    :param shape: Shape of one observation
+    :param clip: Bound on the normalised values (5 in the authors' code)
+    :param epsilon: Added to the variance, and the initial count
+    """
+
+    mean: th.Tensor
+    var: th.Tensor
+    count: th.Tensor
+
+    def __init__(self, shape: tuple[int, ...], clip: float = OBS_CLIP, epsilon: float = 1e-8):
+        super().__init__()
+        self.clip = clip
+        self.epsilon = epsilon
+        self.register_buffer("mean", th.zeros(shape))
+        self.register_buffer("var", th.ones(shape))
+        self.register_buffer("count", th.tensor(1e-4))
+
+    @th.no_grad()
+    def update(self, obs: th.Tensor) -> None:
+        """
+        Merge a batch of observations into the statistics.
+
+        :param obs: Observations, shape (batch, *shape)
+        """
+        obs = obs.float()
+        batch_count = obs.shape[0]
+        batch_mean, batch_var = obs.mean(dim=0), obs.var(dim=0, unbiased=False)
+        delta = batch_mean - self.mean
+        total = self.count + batch_count
+        self.var.copy_((self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total)
+        self.mean.add_(delta * batch_count / total)
+        self.count.copy_(total)
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        return ((obs - self.mean) / th.sqrt(self.var + self.epsilon)).clamp(-self.clip, self.clip)
+
+
+class DictObsNormalizer(nn.Module):
+    """
+    A ``RunningObsNormalizer`` for each Box entry of a Dict observation space; the other entries pass unchanged, and
+    so do keys absent from a batch (``predict()`` with only the actor's keys).
+
+    :param observation_space: The Dict observation space
+    """
+
+    def __init__(self, observation_space: spaces.Dict):
+        super().__init__()
+        self.normalizers = nn.ModuleDict(
+            {
+                key: RunningObsNormalizer(space.shape)
+                for key, space in observation_space.spaces.items()
+                if isinstance(space, spaces.Box)
+            }
+        )
+
+    @th.no_grad()
+    def update(self, obs: dict[str, th.Tensor]) -> None:
+        for key, normalizer in self.normalizers.items():
+            assert isinstance(normalizer, RunningObsNormalizer)
+            normalizer.update(obs[key])
+
+    def forward(self, obs: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
+        return {key: self.normalizers[key](value) if key in self.normalizers else value for key, value in obs.items()}
+
+
+ObsNormalizer = RunningObsNormalizer | DictObsNormalizer
+
+
+class NormalizedFeaturesExtractor(BaseFeaturesExtractor):
+    """
+    A features extractor preceded by observation normalisation. The policy shares one normalizer between all its
+    networks (actor, critics and their averaged copies), so that they all see the same inputs.
+
+    :param observation_space: Observation space
+    :param features_extractor: The features extractor that receives the normalised observations
+    :param normalizer: The shared running normalizer
+    """
+
+    def __init__(self, observation_space: spaces.Space, features_extractor: BaseFeaturesExtractor, normalizer: ObsNormalizer):
+        super().__init__(observation_space, features_extractor.features_dim)
+        self.extractor = features_extractor
+        self.normalizer = normalizer
+
+    def forward(self, observations: PyTorchObs) -> th.Tensor:
+        return self.extractor(self.normalizer(observations))  # type: ignore[arg-type]
+
+
+class DictKeysExtractor(BaseFeaturesExtractor):
+    """
+    A features extractor of some keys of a Dict observation: ``extractor_class`` built on the sub-space of ``keys``;
+    the other keys are ignored (and may be absent).
+
+    :param observation_space: The whole Dict observation space
+    :param keys: The keys to read
+    :param extractor_class: The features extractor of those keys (e.g. SB3's ``CombinedExtractor``)
+    :param extractor_kwargs: Its keyword arguments
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        keys: list[str],
+        extractor_class: type[BaseFeaturesExtractor],
+        extractor_kwargs: dict | None = None,
+    ):
+        extractor = extractor_class(spaces.Dict({key: observation_space[key] for key in keys}), **(extractor_kwargs or {}))
+        super().__init__(observation_space, extractor.features_dim)
+        self.keys = list(keys)
+        self.extractor = extractor
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:  # type: ignore[override]
+        return self.extractor({key: observations[key] for key in self.keys})

@@ -1,0 +1,88 @@
+"""The exported actor (ONNX through onnxruntime, TorchScript) gives the actions of predict(deterministic=True)."""
+
+import pickle
+
+from sb3_cgac import CGAC
+from sb3_cgac.export import export_policy, main
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
+from test_run import DictObsEnv  # tests/ is on sys.path under pytest
+
+ort = pytest.importorskip("onnxruntime")
+
+N_OBS = 1000
+
+
+def trained(policy: str, env: VecNormalize, **kwargs) -> CGAC:
+    model = CGAC(policy, env, policy_kwargs=dict(net_arch=[32, 32], **kwargs.pop("policy_kwargs", {})), seed=0, **kwargs)
+    model.learn(env.num_envs * 60)  # updates from the 32nd step on: the networks and the statistics move
+    return model
+
+
+def raw_observations(env: VecNormalize) -> np.ndarray | dict[str, np.ndarray]:
+    # Observations as the env emits them, before VecNormalize, spread beyond the statistics' range
+    rng = np.random.default_rng(0)
+    space = env.observation_space
+    if hasattr(space, "spaces"):
+        return {key: rng.normal(0, 3, (N_OBS, *sub.shape)).astype(np.float32) for key, sub in space.spaces.items()}
+    return rng.normal(0, 3, (N_OBS, *space.shape)).astype(np.float32)
+
+
+def onnx_actions(path, obs) -> np.ndarray:
+    session = ort.InferenceSession(str(path))
+    feeds = obs if isinstance(obs, dict) else {"obs": obs}
+    return session.run(None, feeds)[0]
+
+
+@pytest.mark.parametrize("predict_tau", [None, 0.05])
+def test_onnx_matches_predict_box(tmp_path, predict_tau):
+    """Pendulum-v1 with VecNormalize and the policy's own normaliser: both are in the exported graph."""
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=8, seed=0), norm_reward=False)
+    model = trained("MlpPolicy", env, predict_tau=predict_tau, policy_kwargs=dict(normalize_observations=True))
+    obs = raw_observations(env)
+    expected, _ = model.predict(env.normalize_obs(obs), deterministic=True)
+    path = export_policy(model, tmp_path / "policy.onnx", vec_normalize=env)
+    actions = onnx_actions(path, obs)
+    assert actions.shape == (N_OBS, 1)
+    np.testing.assert_allclose(actions, expected, atol=1e-5, rtol=0)
+    assert np.abs(expected).max() > 0.1, "the check needs actions away from zero"
+    # TorchScript gives the same
+    scripted = th.jit.load(str(export_policy(model, tmp_path / "policy.pt", vec_normalize=env)))
+    np.testing.assert_allclose(scripted(th.as_tensor(obs)).numpy(), expected, atol=1e-5, rtol=0)
+
+
+def test_onnx_matches_predict_dict(tmp_path):
+    env = VecNormalize(make_vec_env(DictObsEnv, n_envs=8, seed=0), norm_reward=False)
+    model = trained("MultiInputPolicy", env)
+    obs = raw_observations(env)
+    expected, _ = model.predict(env.normalize_obs(obs), deterministic=True)
+    path = export_policy(model, tmp_path / "policy.onnx", vec_normalize=env)
+    assert [node.name for node in ort.InferenceSession(str(path)).get_inputs()] == ["position", "velocity"]
+    np.testing.assert_allclose(onnx_actions(path, obs), expected, atol=1e-5, rtol=0)
+    # Without VecNormalize the exported actor takes the observations as predict() does
+    plain = trained("MultiInputPolicy", make_vec_env(DictObsEnv, n_envs=8, seed=0))
+    path = export_policy(plain, tmp_path / "plain.onnx")
+    np.testing.assert_allclose(onnx_actions(path, obs), plain.predict(obs, deterministic=True)[0], atol=1e-5, rtol=0)
+
+
+def test_export_cli(tmp_path, capsys):
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=8, seed=0), norm_reward=False)
+    model = trained("MlpPolicy", env)
+    model.save(tmp_path / "model")
+    env.save(str(tmp_path / "vecnormalize.pkl"))
+    model_path, statistics = str(tmp_path / "model.zip"), str(tmp_path / "vecnormalize.pkl")
+    main([model_path, "--output", str(tmp_path / "out.onnx"), "--vec-normalize", statistics])
+    assert "Wrote the deterministic actor" in capsys.readouterr().out
+    obs = raw_observations(env)
+    expected, _ = model.predict(env.normalize_obs(obs), deterministic=True)
+    np.testing.assert_allclose(onnx_actions(tmp_path / "out.onnx", obs), expected, atol=1e-5, rtol=0)
+    # Something that is not VecNormalize statistics is refused with a message
+    with open(tmp_path / "other.pkl", "wb") as file_handler:
+        pickle.dump({"not": "statistics"}, file_handler)
+    with pytest.raises(SystemExit):
+        main([model_path, "--output", str(tmp_path / "x.onnx"), "--vec-normalize", str(tmp_path / "other.pkl")])
+    assert "not VecNormalize statistics" in capsys.readouterr().err
