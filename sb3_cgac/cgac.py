@@ -52,10 +52,7 @@ class CGAC(OnPolicyAlgorithm):
     actor and entropy-coefficient update (SAC-style, Eq. 7 and 12) and the Polyak updates of both averaged copies
     every ``policy_delay`` critic updates. ``n_steps == buffer_window`` is PPO-like.
 
-    The ``"auto"`` values depend on the device (``sb3_cgac.hyperparameters``): on a CPU the update cost of the MuJoCo
-    entries (batch 512, 4 critic updates per step, ``tau`` 0.02, ``policy_tau`` 0.05); on a GPU the paper's batch of
-    4096 with the update count and the Polyak rates adapted to the number of envs. After construction the attributes
-    hold the resolved numbers.
+    ``"auto"`` values resolve by device at construction (``sb3_cgac.hyperparameters``); the attributes then hold them.
 
     :param policy: The policy model to use (MlpPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str). Use many parallel envs.
