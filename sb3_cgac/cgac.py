@@ -12,6 +12,7 @@ from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learn
 from sb3_cgac.hyperparameters import (
     FEW_ENVS,
     check_action_space,
+    check_batch_fits,
     check_hyperparameters,
     parse_ent_coef,
     resolve_batch_size,
@@ -199,6 +200,7 @@ class CGAC(OnPolicyAlgorithm):
         check_hyperparameters(self)
         if _init_setup_model:
             self._setup_model()
+            check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)
             warn_few_envs(self.n_envs)
 
     @staticmethod
@@ -456,6 +458,7 @@ class CGAC(OnPolicyAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfCGAC:
+        check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,

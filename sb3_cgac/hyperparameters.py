@@ -153,20 +153,28 @@ def resolve_batch_size(batch_size: int | str | None, buffer_window: int, n_envs:
     """
     :param batch_size: The requested minibatch size; ``"auto"``: 512 on a CPU, the paper's 4096 elsewhere, at most the
         window; None (models saved by sb3_cgac 0.1.0): min(4096, window)
-    :return: The minibatch size; an error if the window cannot hold it
+    :return: The minibatch size (``check_batch_fits`` checks it against the window)
     """
-    capacity = buffer_window * n_envs
     if batch_size is None or batch_size == "auto":
         wanted = CPU_BATCH_SIZE if batch_size == "auto" and device.type == "cpu" else PAPER_BATCH_SIZE
-        return min(wanted, capacity)
+        return min(wanted, buffer_window * n_envs)
     assert isinstance(batch_size, int)
+    return batch_size
+
+
+def check_batch_fits(batch_size: int, buffer_window: int, n_envs: int) -> None:
+    """
+    An error that says what to change if the window cannot hold a minibatch (at construction, and before training: a
+    model loaded with fewer envs still predicts).
+    """
+    capacity = buffer_window * n_envs
     if batch_size > capacity:
         raise ValueError(
             f"CGAC: batch_size ({batch_size}) is larger than the buffer, which holds buffer_window * n_envs "
             f"= {buffer_window} * {n_envs} = {capacity} transitions. Lower batch_size or raise buffer_window or "
-            "the number of envs (batch_size='auto' never takes more than the buffer)."
+            "the number of envs (batch_size='auto' never takes more than the buffer; a loaded model keeps its batch: "
+            "set model.batch_size)."
         )
-    return batch_size
 
 
 def resolve_critic_updates_per_step(updates: int | str | None, n_envs: int, batch_size: int, device: th.device) -> int:

@@ -178,3 +178,17 @@ def test_a_model_with_removed_options_names_the_release():
         CGAC.load(DATA / "cgac-0.1.0-removed-options")
     with pytest.raises(ValueError, match=r"sb3_cgac 0\.1\.0 \(git tag v0\.1\.0\)"):
         CGAC.load(DATA / "cgac-0.1.0-removed-options")
+
+
+def test_load_with_fewer_envs_predicts_and_names_the_batch_to_train(tmp_path):
+    """A model trained with many envs loads for evaluation on fewer; training there asks for a batch that fits."""
+    model = CGAC("MlpPolicy", make_env(16), **SMALL)  # batch "auto": 512, the whole window of 16 envs
+    model.save(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model", env=make_env(2))
+    assert loaded.batch_size == 512
+    obs = np.zeros((2, 3), np.float32)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    with pytest.raises(ValueError, match=r"batch_size \(512\) is larger than the buffer.*set model.batch_size"):
+        loaded.learn(100)
+    loaded.batch_size = 64
+    loaded.learn(2 * 40)
