@@ -8,7 +8,7 @@ from typing import Any
 import torch as th
 
 # The 0.1.0 release: a git tag of this repository (and its version.txt)
-PREVIOUS_RELEASE = "sb3_cgac 0.1.0 (git tag v0.1.0)"
+PREVIOUS_RELEASE = "sb3_cgac 0.1.0 (git tag v0.1.0, commit dd52c51)"
 
 # Constructor arguments that 0.1.0 had and this release removed, with their 0.1.0 defaults: a saved model that kept
 # the default trains here as it did there

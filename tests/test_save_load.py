@@ -176,7 +176,7 @@ def test_load_a_model_of_the_previous_release(tmp_path):
 def test_a_model_with_removed_options_names_the_release():
     with pytest.raises(ValueError, match=r"entropy_schedule='reward'.*behaviour_kl_coef=1.0|behaviour_kl_coef=1.0.*v0\.1\.0"):
         CGAC.load(DATA / "cgac-0.1.0-removed-options")
-    with pytest.raises(ValueError, match=r"sb3_cgac 0\.1\.0 \(git tag v0\.1\.0\)"):
+    with pytest.raises(ValueError, match=r"sb3_cgac 0\.1\.0 \(git tag v0\.1\.0, commit dd52c51\)"):
         CGAC.load(DATA / "cgac-0.1.0-removed-options")
 
 
