@@ -268,10 +268,6 @@ class CGAC(OnPolicyAlgorithm):
         # Parameter lists of the update loop, gathered once (module traversals cost more than the small nets' ops)
         self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
-        self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
-        self._actor_avg_parameters: list[th.Tensor] = list(self.actor_avg.parameters())
-        actor_predict = self.policy.actor_predict
-        self._actor_predict_parameters: list[th.Tensor] = [] if actor_predict is None else list(actor_predict.parameters())
 
     def _optimizers(self) -> list[th.optim.Optimizer]:
         """The optimizers of the updates: actor, critics and, when alpha is learned, alpha's."""
@@ -384,16 +380,8 @@ class CGAC(OnPolicyAlgorithm):
             alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
             ent_coef_loss = update_log_ent_coef(self.log_ent_coef, self.ent_coef_optimizer, *alpha_args)
         entropy = -(log_prob * data.weights).sum() / weight_sum
-        self._polyak_updates()
+        self.policy.polyak_update(self.tau, self.policy_tau, self.predict_tau)
         return th.stack([loss.detach(), grad_norm, entropy, ent_coef_loss])
-
-    @th.no_grad()
-    def _polyak_updates(self) -> None:
-        # target <- (1 - tau) * target + tau * online, all parameters of a network in one foreach call
-        th._foreach_lerp_(self._critic_target_parameters, self._critic_parameters, self.tau)
-        th._foreach_lerp_(self._actor_avg_parameters, self._actor_parameters, self.policy_tau)
-        if self.predict_tau is not None:
-            th._foreach_lerp_(self._actor_predict_parameters, self._actor_parameters, self.predict_tau)
 
     def _update_learning_rates(self) -> float:
         learning_rate = self.lr_schedule(self._current_progress_remaining)
@@ -472,7 +460,7 @@ class CGAC(OnPolicyAlgorithm):
         # Aliases into the policy (saved with it), and state rebuilt by _setup_model or at the next learn()
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs", "_obs_keys"]
         excluded += ["_warned_synchronised_resets", "_autocast_dtype", "_update_graphs", "_critic_parameters"]
-        excluded += ["_actor_parameters", "_critic_target_parameters", "_actor_avg_parameters", "_actor_predict_parameters"]
+        excluded += ["_actor_parameters"]
         excluded += ["gradient_ratio_average"]  # set when a model of sb3_cgac 0.1.0 is loaded (sb3_cgac.compat)
         return [*super()._excluded_save_params(), *excluded]
 

@@ -327,6 +327,25 @@ class CGACPolicy(BasePolicy):
             if averaged is not None:
                 averaged.requires_grad_(False)
                 averaged.set_training_mode(False)
+        # (averaged, trained) parameter lists of polyak_update, gathered once: module traversals cost more than the
+        # small networks' ops
+        actor: list[th.Tensor] = list(self.actor.parameters())
+        self._polyak_pairs: list[tuple[list[th.Tensor], list[th.Tensor]]] = [
+            (list(self.critic_target.parameters()), list(self.critic.parameters())),
+            (list(self.actor_avg.parameters()), actor),
+            ([] if self.actor_predict is None else list(self.actor_predict.parameters()), actor),
+        ]
+
+    @th.no_grad()
+    def polyak_update(self, tau: float, policy_tau: float, predict_tau: float | None = None) -> None:
+        """
+        Move the averaged copies towards the trained networks (paper Sec. 4.2): ``target <- (1 - tau) * target +
+        tau * online`` for the target critic, ``policy_tau`` for the averaged actor, ``predict_tau`` for
+        ``actor_predict``; each network's parameters in one foreach call.
+        """
+        for (averaged, online), rate in zip(self._polyak_pairs, (tau, policy_tau, predict_tau), strict=True):
+            if rate is not None and averaged:
+                th._foreach_lerp_(averaged, online, rate)
 
     def _optimizer_kwargs(self) -> dict[str, Any]:
         # Adam's fused implementation (CPU and CUDA) takes a fraction of the per-tensor loop's time

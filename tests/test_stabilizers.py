@@ -193,7 +193,7 @@ def test_predict_tau_averages_the_actor():
     before = [param.clone() for param in model.policy.actor_predict.parameters()]
     # Trained for a while, the average lags the actor, so the update below moves it
     assert any(not th.equal(old, trained) for old, trained in zip(before, model.actor.parameters(), strict=True))
-    model._polyak_updates()
+    model.policy.polyak_update(model.tau, model.policy_tau, model.predict_tau)
     for old, new, trained in zip(before, model.policy.actor_predict.parameters(), model.actor.parameters(), strict=True):
         assert th.allclose(new, old + 0.2 * (trained - old), atol=1e-7)
         assert not new.requires_grad

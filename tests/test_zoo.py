@@ -119,14 +119,20 @@ def yaml_entries() -> list[tuple[str, str]]:
     return [(name, env_id) for name in YAML_FILES for env_id in yaml.safe_load((HYPERPARAMS_DIR / f"{name}.yml").read_text())]
 
 
-@pytest.mark.parametrize("name, env_id", yaml_entries())
-def test_every_yaml_entry_builds(tmp_path, name, env_id):
+def entry_backend(env_id: str) -> str:
+    """The backend an entry's test builds with (envpool for MuJoCo); skips where the env or envpool is missing."""
     register()
     if env_id not in gym.registry:
         pytest.skip(f"{env_id} is not installed (MyoSuite: the README's MyoSuite command builds its environment)")
     backend = "envpool" if env_id.endswith("-v5") else "dummy"
     if backend == "envpool":
         pytest.importorskip("envpool")
+    return backend
+
+
+@pytest.mark.parametrize("name, env_id", yaml_entries())
+def test_every_yaml_entry_builds(tmp_path, name, env_id):
+    backend = entry_backend(env_id)
     model, manager = build_model(name.split("_")[0], env_id, backend=backend, log_folder=str(tmp_path),
                                  conf_file=str(HYPERPARAMS_DIR / f"{name}.yml"))  # fmt: skip
     assert model.get_env() is not None and model.n_envs == manager.n_envs
@@ -152,12 +158,7 @@ ENTRY_SETTINGS = {
 
 @pytest.mark.parametrize("env_id", list(ENTRY_SETTINGS))
 def test_cgac_entries_resolve_to_their_settings(tmp_path, env_id):
-    register()
-    if env_id not in gym.registry:
-        pytest.skip(f"{env_id} is not installed")
-    backend = "envpool" if env_id.endswith("-v5") else "dummy"
-    if backend == "envpool":
-        pytest.importorskip("envpool")
+    backend = entry_backend(env_id)
     model, _ = build_model("cgac", env_id, backend=backend, log_folder=str(tmp_path), device="cpu")
     (expected, start, end) = ENTRY_SETTINGS[env_id]
     assert (model.batch_size, model.critic_updates_per_step, model.tau, model.policy_tau) == expected
