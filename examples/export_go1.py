@@ -1,12 +1,10 @@
 """
-Train CGAC briefly on the Go1 joystick task (MuJoCo Playground's, as envpool's C++ port), export the deterministic
-actor to ONNX with the observation normalisation and action scaling baked in, and replay the ONNX policy in the env
-(``pip install -e ".[envpool,export]"``).
+Train CGAC briefly on the Go1 joystick task (MuJoCo Playground's, as envpool's C++ port) with an asymmetric
+actor-critic (the actor on the robot's ``state``, the critics also on the simulator's ``privileged_state``), export
+the deterministic actor to ONNX with the observation normalisation and action scaling baked in, and replay the ONNX
+policy in the env, feeding it the ``state`` alone (``pip install -e ".[envpool,export]"``).
 
     python examples/export_go1.py [--timesteps 20000] [--n-envs 32] [--output go1.onnx]
-
-The exported actor reads every observation key the policy does (here ``state`` and ``privileged_state``): an actor on
-the robot's own sensors alone needs an asymmetric policy, which this package does not have yet.
 """
 
 import argparse
@@ -21,7 +19,6 @@ from sb3_cgac.vec_env import make_vec_env  # noqa: E402
 
 import numpy as np  # noqa: E402
 import onnxruntime as ort  # noqa: E402
-from stable_baselines3.common.vec_env import VecNormalize  # noqa: E402
 
 ENV_ID = "Go1JoystickFlatTerrain-v1"
 
@@ -35,21 +32,23 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
-    env = VecNormalize(make_vec_env(ENV_ID, n_envs=args.n_envs, backend="envpool", seed=args.seed), norm_reward=False)
-    model = CGAC("MultiInputPolicy", env, seed=args.seed, verbose=0)
+    env = make_vec_env(ENV_ID, n_envs=args.n_envs, backend="envpool", seed=args.seed)
+    asymmetric = dict(actor_keys=["state"], critic_keys=["privileged_state"], normalize_observations=True)
+    model = CGAC("MultiInputPolicy", env, policy_kwargs=asymmetric, seed=args.seed, verbose=0)
     model.learn(args.timesteps)
-    path = export_policy(model, args.output, vec_normalize=env)
+    path = export_policy(model, args.output)
     print(f"Trained {model.num_timesteps} steps; wrote {path}")
 
-    # Replay in an env without VecNormalize: the ONNX policy takes the raw observations
+    # Replay: the ONNX policy takes the raw observations of the actor's keys
     session = ort.InferenceSession(str(path))
     names = [node.name for node in session.get_inputs()]
+    print(f"ONNX inputs: {names}")
     replay_env = make_vec_env(ENV_ID, n_envs=1, backend="envpool", seed=args.seed + 1000, random_first_episode=False)
     obs = replay_env.reset()
     total, gap = 0.0, 0.0
     for _ in range(args.replay_steps):
         actions = session.run(None, {name: obs[name].astype(np.float32) for name in names})[0]
-        expected, _ = model.predict(env.normalize_obs(obs), deterministic=True)  # type: ignore[arg-type]
+        expected, _ = model.predict({"state": obs["state"]}, deterministic=True)  # type: ignore[index]
         gap = max(gap, float(np.abs(actions - expected).max()))
         obs, rewards, _, _ = replay_env.step(actions)
         total += float(rewards[0])

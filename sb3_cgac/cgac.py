@@ -23,6 +23,7 @@ from sb3_cgac.hyperparameters import (
 )
 from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
+from sb3_cgac.vec_env import episode_metrics
 from sb3_cgac.wrappers import warn_synchronised_resets
 
 import numpy as np
@@ -455,6 +456,12 @@ class CGAC(OnPolicyAlgorithm):
             reset_num_timesteps=reset_num_timesteps,
             progress_bar=progress_bar,
         )
+
+    def dump_logs(self, iteration: int = 0) -> None:
+        # The adapters' episode statistics (reward components, task metrics) beside rollout/ep_rew_mean
+        for key, value in episode_metrics(self.ep_info_buffer or ()).items():
+            self.logger.record(f"rollout/ep_{key}_mean", value)
+        super().dump_logs(iteration)
 
     def _excluded_save_params(self) -> list[str]:
         # Aliases into the policy (saved with it), and state rebuilt by _setup_model or at the next learn()

@@ -8,10 +8,10 @@ CGAC vs SB3 PPO vs SB3 SAC on one env, same machine, same budget (needs the ``zo
 
 Each run name is a hyperparameter file of this repo: ``cgac``, ``ppo``, ``sac`` read ``hyperparams/<name>.yml``,
 and other files can be added by name (``ppo_parallel`` reads ``hyperparams/ppo_parallel.yml`` and trains PPO: the
-algorithm is the part of the name before ``_``). Models are built exactly as ``python -m sb3_cgac.train`` builds
-them. Every (run, seed) pair trains in its own process with one torch thread and one envpool thread, ``--jobs``
-of them at once, so that two runs share a 2-core machine evenly. Finished pairs are skipped when the command runs
-again: a long comparison can be split over several calls.
+algorithm is the part of the name before ``_``; ``rsl_ppo`` trains rsl_rl's PPO, extra ``rsl_rl``). Models are
+built exactly as ``python -m sb3_cgac.train`` builds them. Every (run, seed) pair trains in its own process with
+one torch thread and one envpool thread, ``--jobs`` of them at once, so that two runs share a 2-core machine evenly.
+Finished pairs are skipped when the command runs again: a long comparison can be split over several calls.
 
 The budget is env steps (``--steps``) or training wall-clock minutes (``--minutes``; evaluation time is not counted,
 and the entries' ``n_timesteps`` do not stop a run early, though schedules follow them). Evaluations are
@@ -21,7 +21,9 @@ which tells early terminations from poor behaviour; empty for runs made before i
 ``return_vs_steps.png`` and ``return_vs_time.png`` (mean with a 95% bootstrap band over seeds; the IQM with rliable
 from 3 seeds on) and ``summary.md`` (final and best return, steps/s, time to reach a threshold, and the ratios of
 those times to PPO's and SAC's). ``--success-key success`` adds each evaluation's success rate (the info key at
-each episode's last step, e.g. Adroit's ``success``). Beside each pair's evaluations,
+each episode's last step, e.g. Adroit's ``success``); ``--metrics reward_tracking_lin_vel ...`` adds a column per
+episode statistic of the envpool and gymnasium adapters (their ``episode_info``: mean over the evaluation's episodes)
+and its final value to the summary. Beside each pair's evaluations,
 ``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the model's logger at each evaluation
 (CGAC: alpha as ``ent_coef``, ``entropy``, the losses...) and the mean return and length of the training envs' latest
 episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``).
@@ -38,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_cgac.threads import configure_thread_spin
+from sb3_cgac.vec_env import episode_metrics
 
 import numpy as np
 
@@ -83,7 +86,8 @@ def record_train_stats(
     :param logged: The model's ``logger.name_to_value``
     :param steps: Env steps at this evaluation
     :param seconds: Training wall-clock at this evaluation
-    :param episodes: The model's ``ep_info_buffer`` (the Monitor infos ``r`` and ``l`` of its latest episodes)
+    :param episodes: The model's ``ep_info_buffer`` (the Monitor infos ``r`` and ``l`` of its latest episodes, and
+        the adapters' episode statistics, recorded as ``rollout_<key>``)
     """
     stats = {}
     for key, value in logged.items():
@@ -93,6 +97,8 @@ def record_train_stats(
     if finished:
         stats["rollout_return"] = f"{np.mean([episode['r'] for episode in finished]):.6g}"
         stats["rollout_length"] = f"{np.mean([episode['l'] for episode in finished]):.6g}"
+        for key, value in episode_metrics(finished).items():
+            stats[f"rollout_{key}"] = f"{value:.6g}"
     rows.append({"steps": str(steps), "seconds": f"{seconds:.2f}", **stats})
     keys = list(dict.fromkeys(key for row in rows for key in row))
     lines = [",".join(keys)] + [",".join(row.get(key, "") for key in keys) for row in rows]
@@ -119,7 +125,7 @@ def follow_planned_progress(model: Any, planned_timesteps: int) -> None:
 
 def train_one(args: argparse.Namespace) -> None:
     """Train one (run, seed) pair under the budget, writing its evaluations as it goes."""
-    from sb3_cgac.zoo import HYPERPARAMS_DIR, build_model
+    from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model
 
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback
@@ -131,7 +137,7 @@ def train_one(args: argparse.Namespace) -> None:
     backend_kwargs = {"num_threads": args.threads} if args.backend == "envpool" else None
     with tempfile.TemporaryDirectory() as log_folder:
         model, manager = build_model(
-            args.file.split("_")[0],
+            algorithm_of(args.file),
             args.env,
             seed=args.seed,
             backend=args.backend,
@@ -164,25 +170,33 @@ def train_one(args: argparse.Namespace) -> None:
                 self.next_evaluation = self.num_timesteps + args.eval_every * args.steps
             sync_envs_normalization(self.training_env, eval_env)
             successes: list[bool] = []
+            metrics: dict[str, list[float]] = {key: [] for key in args.metrics}
 
-            def record_success(locals_: dict[str, Any], _globals: dict[str, Any]) -> None:
+            def record_episode(locals_: dict[str, Any], _globals: dict[str, Any]) -> None:
                 # As SB3's EvalCallback records is_success: the info of each episode's last step
-                if args.success_key and locals_["done"]:
-                    successes.append(bool(locals_["info"].get(args.success_key, False)))
+                if not locals_["done"]:
+                    return
+                info = locals_["info"]
+                if args.success_key:
+                    successes.append(bool(info.get(args.success_key, False)))
+                for key in args.metrics:
+                    if key in info.get("episode", {}):
+                        metrics[key].append(float(info["episode"][key]))
 
             returns, lengths = evaluate_policy(
                 self.model,
                 eval_env,
                 n_eval_episodes=args.eval_episodes,
                 deterministic=True,
-                callback=record_success,
+                callback=record_episode,
                 return_episode_rewards=True,
             )
-            row = (
-                f"{args.run},{args.seed},{self.num_timesteps},{self.seconds:.2f},{np.mean(returns):.3f},{np.mean(lengths):.1f}"
-            )
-            rows.append(row + (f",{np.mean(successes) if successes else 0.0:.3f}\n" if args.success_key else "\n"))
-            header = ",".join(COLUMNS + (["success_rate"] if args.success_key else []))
+            values = [args.run, str(args.seed), str(self.num_timesteps), f"{self.seconds:.2f}"]
+            values += [f"{np.mean(returns):.3f}", f"{np.mean(lengths):.1f}"]
+            values += [f"{np.mean(successes) if successes else 0.0:.3f}"] if args.success_key else []
+            values += [f"{np.mean(found):.6g}" if found else "" for found in metrics.values()]
+            rows.append(",".join(values) + "\n")
+            header = ",".join(COLUMNS + (["success_rate"] if args.success_key else []) + list(args.metrics))
             write_csv_atomically(csv_path, header + "\n" + "".join(rows))
             self.record_train_stats()
             self.resumed = time.perf_counter()
@@ -224,6 +238,7 @@ def launch(args: argparse.Namespace, run: str, seed: int, spec: dict[str, Any]) 
     command += ["--eval-every", str(args.eval_every), "--eval-episodes", str(args.eval_episodes)]
     command += ["--eval-envs", str(args.eval_envs)]
     command += ["--success-key", args.success_key] if args.success_key else []
+    command += ["--metrics", *args.metrics] if args.metrics else []
     command += ["--minutes", str(args.minutes)] if args.minutes else ["--steps", str(args.steps)]
     if args.conf_dir:
         command += ["--conf-dir", args.conf_dir]
@@ -385,6 +400,8 @@ def summarise(
             threshold_source, sources = f"best final return of any run; no {references[0]} run yet", with_results
         threshold = float(max(finals[run].max() for run in sources))
     stats: dict[str, dict[str, float]] = {}
+    # The --metrics columns: every column after the fixed ones
+    metric_columns = [column for column in results.columns if column not in (*COLUMNS, "success_rate")]
     for run in runs:
         # The evaluation before training is left out: an untrained policy can score well (a motionless Ant
         # collects its healthy reward for 1000 steps) and would count as reaching the threshold at 0 s
@@ -408,6 +425,9 @@ def summarise(
             # Runs evaluated without --success-key have no rate
             last = results[results["run"] == run].sort_values("steps").groupby("seed")["success_rate"].last()
             stats[run]["success"] = float(last.mean())
+        for key in metric_columns:
+            last = results[results["run"] == run].sort_values("steps").groupby("seed")[key].last()
+            stats[run][f"metric {key}"] = float(last.mean())
 
     def ratio(run: str, reference: str) -> str:
         if reference not in stats or run == reference:
@@ -431,8 +451,9 @@ def summarise(
         "",
         "| run | seeds | final return | worst final | best return | steps/s | time to threshold | steps to threshold |"
         + "".join(f" time vs {reference} |" for reference in shown)
-        + (" final success rate |" if with_success else ""),
-        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * (len(shown) + with_success),
+        + (" final success rate |" if with_success else "")
+        + "".join(f" final {key} |" for key in metric_columns),
+        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * (len(shown) + with_success + len(metric_columns)),
     ]
     for run, s in stats.items():
         time_text = (
@@ -447,6 +468,7 @@ def summarise(
             f"| {time_text} ({s['reached']}/{s['seeds']} seeds) | {steps_text} |"
             + "".join(f" {ratio(run, reference)} |" for reference in shown)
             + (f" {s['success']:.2f} |" if with_success else "")
+            + "".join(f" {s[f'metric {key}']:.4g} |" for key in metric_columns)
         )
     table = "\n".join(lines)
     (out / "summary.md").write_text(table + "\n")
@@ -472,6 +494,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--eval-envs", type=int, default=5)
     parser.add_argument("--success-key", default=None, help="info key at each evaluation episode's end: adds a success rate")
+    parser.add_argument(
+        "--metrics",
+        nargs="+",
+        default=[],
+        help="episode statistics of the envpool/gymnasium adapters (their episode_info, e.g. reward_tracking_lin_vel) "
+        "recorded at each evaluation (mean over its episodes) and in the summary",
+    )
     parser.add_argument("--threshold", type=float, default=None, help="return threshold (default: best PPO final return)")
     parser.add_argument("--backend", default="dummy", help="vec-env backend of every run (dummy, envpool, ...)")
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")

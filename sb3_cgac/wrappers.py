@@ -1,10 +1,14 @@
-"""Gymnasium wrappers for training with many parallel envs."""
+"""Gymnasium and SB3 VecEnv wrappers for training with many parallel envs."""
 
 import warnings
+from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 
 class RandomFirstEpisodeLength(gym.Wrapper):
@@ -73,3 +77,38 @@ def warn_synchronised_resets() -> None:
         UserWarning,
         stacklevel=3,
     )
+
+
+class VecObservationKeys(VecEnvWrapper):
+    """
+    Keep some keys of a Dict observation, in the observations and in ``infos[i]["terminal_observation"]``: an
+    algorithm without per-key inputs (SB3's PPO, SAC) then reads only what a robot senses, e.g. ``keys=["state"]``
+    of the MuJoCo Playground tasks. In rl-zoo YAML: ``vec_env_wrapper: [{sb3_cgac.wrappers.VecObservationKeys:
+    {keys: [state]}}]``.
+
+    :param venv: The vector env, with a Dict observation space
+    :param keys: The keys to keep
+    """
+
+    def __init__(self, venv: VecEnv, keys: Sequence[str]):
+        space = venv.observation_space
+        if not isinstance(space, spaces.Dict):
+            raise ValueError(f"VecObservationKeys selects keys of a Dict observation space, got {space}.")
+        unknown = sorted(set(keys) - set(space.spaces))
+        if unknown or not keys:
+            raise ValueError(f"VecObservationKeys: keys {list(keys)} must be some of the observation's {list(space.spaces)}.")
+        self.keys = list(keys)
+        super().__init__(venv, observation_space=spaces.Dict({key: space[key] for key in self.keys}))
+
+    def _select(self, obs: Any) -> dict[str, np.ndarray]:
+        return {key: obs[key] for key in self.keys}
+
+    def reset(self) -> VecEnvObs:
+        return self._select(self.venv.reset())
+
+    def step_wait(self) -> VecEnvStepReturn:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        for info in infos:
+            if "terminal_observation" in info:
+                info["terminal_observation"] = self._select(info["terminal_observation"])
+        return self._select(obs), rewards, dones, infos

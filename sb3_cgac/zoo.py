@@ -9,13 +9,14 @@ import contextlib
 import functools
 import importlib
 import importlib.resources
+import importlib.util
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from sb3_cgac import CGAC
-from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_optional_envs
+from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_envpool_task, register_optional_envs
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
@@ -61,9 +62,27 @@ def parse_schedule(key: str, value: str) -> Callable[[float], float]:
 
 
 def register() -> None:
-    """Register CGAC in rl_zoo3, and the envs of gymnasium-robotics and MyoSuite when they are installed."""
+    """
+    Register CGAC in rl_zoo3 (and rsl_rl's PPO as ``rsl_ppo`` when ``rsl-rl-lib`` is installed), and the envs of
+    gymnasium-robotics and MyoSuite when they are installed.
+    """
     ALGOS["cgac"] = CGAC
+    if importlib.util.find_spec("rsl_rl") is not None:
+        from sb3_cgac.rsl_rl import RslPPO
+
+        ALGOS["rsl_ppo"] = RslPPO
     register_optional_envs()
+
+
+def algorithm_of(file: str) -> str:
+    """
+    The algorithm of a hyperparameter file's name: the name up to the first ``_`` (``ppo_parallel``: ppo), except
+    for the algorithms whose names hold one (``rsl_ppo``, ``rsl_ppo_go1``: rsl_ppo).
+    """
+    for name in ("rsl_ppo",):
+        if file == name or file.startswith(f"{name}_"):
+            return name
+    return file.split("_")[0]
 
 
 def hyperparams_file(algo: str) -> Path | None:
@@ -102,6 +121,8 @@ class CGACExperimentManager(ExperimentManager):
             kwargs["vec_env_type"] = "dummy"
         elif "vec_env_type" not in kwargs:
             kwargs["vec_env_type"] = backend
+        if backend == "envpool":  # the zoo looks the id up in gymnasium's registry
+            register_envpool_task(args[2] if len(args) > 2 else kwargs["env_id"])
         super().__init__(*args, **kwargs)
         self.backend = backend
         self.backend_kwargs = backend_kwargs or {}
@@ -279,4 +300,4 @@ def build_model(
     return result[0], manager
 
 
-__all__ = ["HYPERPARAMS_DIR", "CGACExperimentManager", "build_model", "enjoy", "register", "train"]
+__all__ = ["HYPERPARAMS_DIR", "CGACExperimentManager", "algorithm_of", "build_model", "enjoy", "register", "train"]

@@ -31,7 +31,7 @@ def test_zoo_usage(tmp_path):
 
 
 def test_export_go1(tmp_path):
-    """Trains Go1 for a few hundred steps, exports the actor to ONNX and replays it in the env."""
+    """Trains Go1 for a few hundred steps, exports the asymmetric actor to ONNX and replays it in the env (``state`` only)."""
     pytest.importorskip("onnxruntime")
     envpool = pytest.importorskip("envpool")
     if "Go1JoystickFlatTerrain-v1" not in envpool.list_all_envs():
@@ -39,5 +39,6 @@ def test_export_go1(tmp_path):
     args = ("--timesteps", "1024", "--n-envs", "16", "--replay-steps", "50", "--output", "go1.onnx")
     stdout = run_example("export_go1.py", *args, cwd=tmp_path)
     assert (tmp_path / "go1.onnx").exists()
+    assert "ONNX inputs: ['state']" in stdout
     gap = float(stdout.split("largest gap to predict(): ")[1].split()[0])
     assert gap < 1e-5, stdout

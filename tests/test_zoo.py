@@ -13,7 +13,7 @@ import yaml
 pytest.importorskip("rl_zoo3")
 
 from sb3_cgac import CGAC
-from sb3_cgac.zoo import HYPERPARAMS_DIR, build_model, register, train
+from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model, register, train
 
 import gymnasium as gym
 import rl_zoo3
@@ -119,22 +119,34 @@ def yaml_entries() -> list[tuple[str, str]]:
     return [(name, env_id) for name in YAML_FILES for env_id in yaml.safe_load((HYPERPARAMS_DIR / f"{name}.yml").read_text())]
 
 
+# MuJoCo Playground's tasks: envpool's ports, without a gymnasium env
+PLAYGROUND_TASKS = ("Go1JoystickFlatTerrain-v1", "G1JoystickFlatTerrain-v1", "MuJoCoPlayground/")
+
+
 def entry_backend(env_id: str) -> str:
     """The backend an entry's test builds with (envpool for MuJoCo); skips where the env or envpool is missing."""
     register()
+    if env_id.endswith("-v5") or env_id.startswith(PLAYGROUND_TASKS):
+        envpool = pytest.importorskip("envpool")
+        if env_id not in envpool.list_all_envs():
+            pytest.skip(f"envpool {envpool.__version__} has no {env_id} (envpool 1.2.5 and later have the Playground tasks)")
+        return "envpool"
     if env_id not in gym.registry:
         pytest.skip(f"{env_id} is not installed (MyoSuite: the README's MyoSuite command builds its environment)")
-    backend = "envpool" if env_id.endswith("-v5") else "dummy"
-    if backend == "envpool":
-        pytest.importorskip("envpool")
-    return backend
+    return "dummy"
 
 
 @pytest.mark.parametrize("name, env_id", yaml_entries())
 def test_every_yaml_entry_builds(tmp_path, name, env_id):
     backend = entry_backend(env_id)
-    model, manager = build_model(name.split("_")[0], env_id, backend=backend, log_folder=str(tmp_path),
-                                 conf_file=str(HYPERPARAMS_DIR / f"{name}.yml"))  # fmt: skip
+    if algorithm_of(name) == "rsl_ppo":
+        pytest.importorskip("rsl_rl")
+    # The Playground ports take 40-80 MB per env: a few envs check the entry
+    few = None
+    if env_id.startswith(PLAYGROUND_TASKS):
+        few = {"n_envs": 4, **({"batch_size": 48} if name == "ppo_parallel" else {})}
+    model, manager = build_model(algorithm_of(name), env_id, backend=backend, log_folder=str(tmp_path),
+                                 conf_file=str(HYPERPARAMS_DIR / f"{name}.yml"), hyperparams=few)  # fmt: skip
     assert model.get_env() is not None and model.n_envs == manager.n_envs
     obs = model.get_env().reset()
     actions, _ = model.predict(obs, deterministic=True)

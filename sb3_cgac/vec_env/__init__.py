@@ -6,18 +6,35 @@ SB3's ``DummyVecEnv`` and ``SubprocVecEnv``, ``EnvPoolVecEnv`` (C++ thread pool,
 
 import contextlib
 import functools
+from collections.abc import Iterable
 from typing import Any
 
-from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv
-from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv
+from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv, register_envpool_task
+from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv, auto_episode_info
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
+import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async")
+# The entries of Monitor's episode dicts; the others are the adapters' episode_info statistics
+MONITOR_KEYS = ("r", "l", "t")
+
+
+def episode_metrics(episodes: Iterable[dict[str, Any]]) -> dict[str, float]:
+    """
+    Mean over ``episodes`` (an ``ep_info_buffer``) of every statistic beside Monitor's return, length and time:
+    the ``episode_info`` of the envpool and gymnasium adapters, e.g. the reward components ``reward_*``.
+    """
+    values: dict[str, list[float]] = {}
+    for episode in episodes:
+        for key, value in episode.items():
+            if key not in MONITOR_KEYS and isinstance(value, int | float | np.number):
+                values.setdefault(key, []).append(float(value))
+    return {key: float(np.mean(found)) for key, found in values.items()}
 
 
 def register_optional_envs() -> None:
@@ -63,7 +80,7 @@ def make_vec_env(
     :param seed: Seed of the envs (env i gets ``seed + i``)
     :param env_kwargs: Keyword arguments of the env constructor
     :param vec_env_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool,
-        ``start_method`` for subproc, ``info_keys`` for the envpool and gymnasium adapters)
+        ``start_method`` for subproc, ``info_keys`` and ``episode_info`` for the envpool and gymnasium adapters)
     :param random_first_episode: Cut the first episode of every env at a random length (a time-limit truncation,
         not reported as an episode), so that the envs do not all reset at the same steps: with envs in step, CGAC's
         window periodically holds only initial states and its critic forgets the rest
@@ -102,4 +119,13 @@ def make_vec_env(
     raise ValueError(f"Unknown vec-env backend {backend!r}; choose one of {BACKENDS}.")
 
 
-__all__ = ["BACKENDS", "EnvPoolVecEnv", "GymnasiumVecEnv", "make_vec_env", "register_optional_envs"]
+__all__ = [
+    "BACKENDS",
+    "EnvPoolVecEnv",
+    "GymnasiumVecEnv",
+    "auto_episode_info",
+    "episode_metrics",
+    "make_vec_env",
+    "register_envpool_task",
+    "register_optional_envs",
+]

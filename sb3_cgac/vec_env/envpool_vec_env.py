@@ -1,8 +1,9 @@
 """An SB3 ``VecEnv`` over an envpool batch: all envs stepped by one C++ thread pool."""
 
+import functools
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from sb3_cgac.threads import thread_spin_configured
@@ -20,6 +21,24 @@ def _import_envpool() -> Any:
     except ImportError as error:
         raise ImportError("EnvPoolVecEnv needs envpool: pip install 'sb3_cgac[envpool]' (or pip install envpool).") from error
     return envpool
+
+
+def register_envpool_task(env_id: str) -> None:
+    """
+    Register an envpool task that gymnasium lacks (MuJoCo Playground's ports, e.g. ``Go1JoystickFlatTerrain-v1``)
+    in gymnasium's registry under its id, for tools that look ids up there (rl_zoo3). The registered env only
+    explains that the envpool backend builds the task.
+    """
+    if env_id in gym.registry or env_id not in _import_envpool().list_all_envs():
+        return
+    gym.register(env_id, entry_point=functools.partial(_envpool_only_task, env_id))
+
+
+def _envpool_only_task(env_id: str, **kwargs: Any) -> gym.Env:
+    raise gym.error.Error(
+        f"{env_id} is an envpool task without a gymnasium env: build it with the envpool backend "
+        f"(sb3_cgac.vec_env.make_vec_env({env_id!r}, n_envs, backend='envpool'), or --vec-env envpool)."
+    )
 
 
 def _warn_if_torch_spins() -> None:
@@ -50,6 +69,9 @@ class EnvPoolVecEnv(GymnasiumVecEnv):
     :param num_threads: Threads of envpool's pool (None: one per CPU core)
     :param info_keys: Per-env info entries to copy into SB3's info dicts at every step
     :param random_first_episode: Cut the first episode of every env at a random length (see ``GymnasiumVecEnv``)
+    :param episode_info: Info entries summarised over each episode into ``infos[i]["episode"]`` (see
+        ``GymnasiumVecEnv``; ``"auto"``: the reward components ``reward_*`` summed, and the MuJoCo Playground tasks'
+        counters, e.g. LeapCube's ``success_count``)
     :param env_kwargs: Other keyword arguments of ``envpool.make_gymnasium`` (e.g. ``max_episode_steps``)
     """
 
@@ -61,6 +83,7 @@ class EnvPoolVecEnv(GymnasiumVecEnv):
         num_threads: int | None = None,
         info_keys: Sequence[str] = (),
         random_first_episode: bool = False,
+        episode_info: Mapping[str, str] | str | None = "auto",
         **env_kwargs: Any,
     ):
         self.env_id = env_id
@@ -68,7 +91,12 @@ class EnvPoolVecEnv(GymnasiumVecEnv):
         self.env_kwargs = env_kwargs
         self.current_seed = seed
         _warn_if_torch_spins()
-        super().__init__(self._make_pool(num_envs, seed), info_keys=info_keys, random_first_episode=random_first_episode)
+        super().__init__(
+            self._make_pool(num_envs, seed),
+            info_keys=info_keys,
+            random_first_episode=random_first_episode,
+            episode_info=episode_info,
+        )
         if isinstance(self.action_space, spaces.Box) and self.action_space.dtype == np.float64:
             # Gymnasium's MuJoCo envs declare float32 actions: match them, so that a model trained here
             # loads onto the gymnasium env (SB3 compares the spaces)

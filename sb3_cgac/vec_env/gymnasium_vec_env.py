@@ -1,7 +1,7 @@
 """An SB3 ``VecEnv`` over a ``gymnasium.vector.VectorEnv`` (sync, async, or any batched simulator with that API)."""
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -11,6 +11,29 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 BatchObs = np.ndarray | dict[str, np.ndarray]
+
+EPISODE_AGGREGATIONS = ("sum", "mean", "max", "last")
+# Counters that MuJoCo Playground's tasks keep in their infos: successes so far (LeapCube), box out of bounds (Panda)
+AUTO_EPISODE_INFO = {"success_count": "last", "out_of_bounds": "max"}
+
+
+def auto_episode_info(infos: Mapping[str, Any], num_envs: int) -> dict[str, str]:
+    """
+    The episode statistics that ``episode_info="auto"`` keeps: the sum over the episode of every per-env info
+    ``reward_*`` (reward components, as MuJoCo Playground, envpool and gymnasium's MuJoCo envs report them) and the
+    Playground counters of ``AUTO_EPISODE_INFO``.
+    """
+    chosen = {}
+    for key, value in infos.items():
+        how = "sum" if key.startswith("reward_") else AUTO_EPISODE_INFO.get(key)
+        if how is not None and _per_env_scalars(value, num_envs):
+            chosen[key] = how
+    return chosen
+
+
+def _per_env_scalars(value: Any, num_envs: int) -> bool:
+    array = np.asarray(value)
+    return array.shape == (num_envs,) and np.issubdtype(array.dtype, np.number)
 
 
 def _rows(obs: BatchObs, index: Any) -> BatchObs:
@@ -49,9 +72,19 @@ class GymnasiumVecEnv(VecEnv):
     :param random_first_episode: Cut the first episode of every env after a random number of steps, drawn uniformly
         from ``1..max_episode_steps``, as a time-limit truncation, so that the envs do not all reset at the same
         steps (see ``sb3_cgac.wrappers.RandomFirstEpisodeLength``, the same for single envs)
+    :param episode_info: Per-env info entries summarised over each episode into ``infos[i]["episode"]`` beside
+        ``r`` and ``l``, as ``{key: "sum" | "mean" | "max" | "last"}`` (reward components, task metrics); CGAC logs
+        their means as ``rollout/ep_<key>_mean``. ``"auto"``: see ``auto_episode_info``, decided at the first step
+        (None: none)
     """
 
-    def __init__(self, venv: gym.vector.VectorEnv, info_keys: Sequence[str] = (), random_first_episode: bool = False):
+    def __init__(
+        self,
+        venv: gym.vector.VectorEnv,
+        info_keys: Sequence[str] = (),
+        random_first_episode: bool = False,
+        episode_info: Mapping[str, str] | str | None = "auto",
+    ):
         if not isinstance(venv, gym.vector.VectorEnv):
             raise TypeError(
                 f"GymnasiumVecEnv wraps a gymnasium.vector.VectorEnv, got {type(venv).__name__}. Build one with "
@@ -60,6 +93,8 @@ class GymnasiumVecEnv(VecEnv):
         self.venv = venv
         super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
         self.info_keys = tuple(info_keys)
+        self.episode_info = self._checked_episode_info(episode_info)
+        self._episode_values: dict[str, np.ndarray] = {}
         mode = venv.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         self.autoreset_mode = AutoresetMode(mode.value if isinstance(mode, AutoresetMode) else mode)
         self._actions: np.ndarray | None = None
@@ -71,6 +106,19 @@ class GymnasiumVecEnv(VecEnv):
         self._first_cut = np.zeros(self.num_envs, dtype=np.int64)
         if random_first_episode:
             self.max_episode_steps()  # fail now, not at the first reset
+
+    @staticmethod
+    def _checked_episode_info(episode_info: Mapping[str, str] | str | None) -> dict[str, str] | None:
+        """The per-key aggregations (None: decided at the first step, for "auto")."""
+        if episode_info == "auto":
+            return None
+        if isinstance(episode_info, str):
+            raise ValueError(f'episode_info takes {{info key: aggregation}}, "auto" or None, got {episode_info!r}.')
+        chosen = dict(episode_info or {})
+        wrong = {key: how for key, how in chosen.items() if how not in EPISODE_AGGREGATIONS}
+        if wrong:
+            raise ValueError(f"episode_info: unknown aggregation(s) {wrong}; choose from {EPISODE_AGGREGATIONS}.")
+        return chosen
 
     def max_episode_steps(self) -> int:
         """Time limit of the envs' episodes, the range of the random first-episode cuts."""
@@ -98,6 +146,7 @@ class GymnasiumVecEnv(VecEnv):
         self.reset_infos = self._info_dicts(infos)
         self._episode_returns[:] = 0
         self._episode_lengths[:] = 0
+        self._episode_values = {}
         if self.random_first_episode:
             rng = np.random.default_rng(self._cut_seed(seeds))
             self._first_cut = rng.integers(1, self.max_episode_steps() + 1, size=self.num_envs)
@@ -114,14 +163,17 @@ class GymnasiumVecEnv(VecEnv):
         self._episode_returns += rewards
         self._episode_lengths += 1
         step_infos = self._info_dicts(infos)
+        same_step = self.autoreset_mode == AutoresetMode.SAME_STEP
+        # With SAME_STEP the infos of finished envs are those of their reset, the last step's are in final_info
+        final_infos = infos.get("final_info", {}) if same_step else infos
+        self._track_episode_info(infos, final_infos, terminated | truncated)
         cut = self._cut_first_episodes(dones)
         if cut is not None:  # a time-limit truncation of envs the vector env did not end itself
             truncated, dones = truncated | cut, dones | cut
         done_idx = np.flatnonzero(dones)
         if len(done_idx) > 0:
-            if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            if same_step:
                 terminal_obs = infos.get("final_obs")
-                final_infos = infos.get("final_info", {})
                 terminal_rows = [
                     _rows(obs, idx) if cut is not None and cut[idx] else terminal_obs[idx]  # type: ignore[index]
                     for idx in done_idx
@@ -129,7 +181,6 @@ class GymnasiumVecEnv(VecEnv):
                 if cut is not None:
                     obs = self._reset_finished(obs, cut)
             else:
-                final_infos = infos
                 terminal_rows = self._split_rows(_rows(obs, done_idx), len(done_idx))
                 obs = self._reset_finished(obs, dones)
             elapsed = round(time.time() - self._start_time, 6)
@@ -139,12 +190,48 @@ class GymnasiumVecEnv(VecEnv):
                 info["TimeLimit.truncated"] = bool(truncated[idx] and not terminated[idx])
                 if cut is None or not cut[idx]:  # like Monitor, which never sees the cut of a first episode
                     episode = {"r": float(self._episode_returns[idx]), "l": int(self._episode_lengths[idx]), "t": elapsed}
-                    info["episode"] = episode
+                    info["episode"] = {**episode, **self._episode_statistics(idx)}
                 if "is_success" in final_infos and final_infos.get("_is_success", np.ones(self.num_envs, bool))[idx]:
                     info["is_success"] = final_infos["is_success"][idx]
             self._episode_returns[done_idx] = 0
             self._episode_lengths[done_idx] = 0
+            for key, values in self._episode_values.items():
+                values[done_idx] = -np.inf if self.episode_info and self.episode_info[key] == "max" else 0.0
         return obs, rewards, dones, step_infos
+
+    def _track_episode_info(self, infos: dict[str, Any], final_infos: dict[str, Any], finished: np.ndarray) -> None:
+        """Add this step's info entries to the running episode statistics of ``episode_info``."""
+        if self.episode_info is None:  # "auto": decided by the first step's infos
+            self.episode_info = auto_episode_info(infos, self.num_envs)
+        for key, how in self.episode_info.items():
+            if key not in infos:
+                continue  # not reported at this step
+            if not _per_env_scalars(infos[key], self.num_envs):
+                raise ValueError(
+                    f"episode_info: the info {key!r} holds {np.asarray(infos[key]).shape} values, not one number per env "
+                    f"({self.num_envs},); leave it out of episode_info."
+                )
+            values = np.asarray(infos[key], dtype=np.float64)
+            if finished.any() and key in final_infos and final_infos is not infos:
+                values = np.where(finished, np.asarray(final_infos[key], dtype=np.float64), values)
+            if key not in self._episode_values:
+                self._episode_values[key] = np.full(self.num_envs, -np.inf if how == "max" else 0.0)
+            current = self._episode_values[key]
+            if how in ("sum", "mean"):
+                current += values
+            elif how == "max":
+                np.maximum(current, values, out=current)
+            else:
+                current[:] = values
+
+    def _episode_statistics(self, idx: int | np.integer) -> dict[str, float]:
+        """The ``episode_info`` statistics of the episode that env ``idx`` ends now."""
+        assert self.episode_info is not None
+        statistics = {}
+        for key, values in self._episode_values.items():
+            how = self.episode_info[key]
+            statistics[key] = float(values[idx] / self._episode_lengths[idx] if how == "mean" else values[idx])
+        return statistics
 
     def _cut_seed(self, seeds: list[int] | None) -> int | None:
         # The first-episode cuts are drawn from the envs' seed, so that seeded runs repeat
