@@ -9,6 +9,7 @@ from sb3_cgac.buffers import (
 )
 from sb3_cgac.compat import upgrade_saved_attributes
 from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
+from sb3_cgac.distributed import RANK_SEED_STRIDE, DataParallel, world
 from sb3_cgac.hyperparameters import (
     FEW_ENVS,
     check_action_space,
@@ -30,6 +31,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import configure as configure_logger
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
@@ -250,6 +252,24 @@ class CGAC(OnPolicyAlgorithm):
         self._update_graphs = UpdateGraphs(
             self._critic_update, self._actor_update, self._optimizers, self.device, self.cuda_graphs
         )
+        self._parallel = DataParallel(self.device) if world()[1] > 1 else None
+        if self._parallel is not None:
+            self._start_data_parallel(self._parallel)
+
+    def _start_data_parallel(self, parallel: DataParallel) -> None:
+        """Check that the ranks run in step, and give them rank 0's starting parameters (``sb3_cgac.distributed``)."""
+        if self.cuda_graphs:
+            raise ValueError("CGAC: cuda_graphs=True does not run with torch.distributed yet; pass cuda_graphs=False.")
+        for name in ("n_envs", "n_steps", "batch_size", "critic_updates_per_step"):
+            parallel.check_same(name, getattr(self, name))
+        parallel.broadcast_tensors(
+            [*self.policy.state_dict().values(), *([self.log_ent_coef] if self.log_ent_coef is not None else [])]
+        )
+        parallel.sync_vec_normalize(self.get_vec_normalize_env())
+
+    def set_random_seed(self, seed: int | None = None) -> None:
+        # Under torch.distributed each rank gets its own seed: its own envs and minibatches
+        super().set_random_seed(None if seed is None else seed + world()[0] * RANK_SEED_STRIDE)
 
     def _resolve_auto_hyperparameters(self) -> None:
         # "auto" becomes the number for this device and env count; loaded models keep the numbers they were saved with
@@ -280,7 +300,7 @@ class CGAC(OnPolicyAlgorithm):
         obs, ok = observations_to_tensor(self._last_obs, self.device)
         buffer.reset()
         buffer.set_current_obs(obs, ok)
-        self.policy.update_obs_normalizer(obs, ok)
+        self.policy.update_obs_normalizer(obs, ok, self._parallel.sum if self._parallel else None)
         with th.inference_mode():
             self._pending_actions = self.actor_avg.sample(obs, 1)[0]
         self._rollout_obs = self._last_obs
@@ -319,7 +339,7 @@ class CGAC(OnPolicyAlgorithm):
                 warn_synchronised_resets()
 
             obs_tensor, obs_ok = observations_to_tensor(new_obs, self.device)
-            self.policy.update_obs_normalizer(obs_tensor, obs_ok)
+            self.policy.update_obs_normalizer(obs_tensor, obs_ok, self._parallel.sum if self._parallel else None)
             with th.inference_mode():
                 # Two draws of the averaged actor at s_{t+1}: the action of the next step, and the
                 # "next action" a'_{t+1} of this transition for its value target
@@ -336,10 +356,15 @@ class CGAC(OnPolicyAlgorithm):
                 self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
 
             callback.update_locals(locals())
-            if not callback.on_step():
+            keep_going = callback.on_step()
+            if self._parallel is not None:  # a callback of one rank (rank 0's evaluation) stops every rank
+                keep_going = self._parallel.all_agree(keep_going)
+            if not keep_going:
                 return False
 
         self.logger.record("rollout/nonfinite_transitions", rollout_buffer.n_nonfinite)
+        if self._parallel is not None:  # one set of VecNormalize statistics for every rank
+            self._parallel.sync_vec_normalize(self.get_vec_normalize_env())
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
@@ -348,9 +373,12 @@ class CGAC(OnPolicyAlgorithm):
         """One critic update (paper Eq. 8) on a minibatch given as ``samples_to_tensors`` does; returns its statistics."""
         data = samples_from_tensors(minibatch, self._obs_keys)
         weight_sum = data.weights.sum().clamp_min(1.0)
-        loss, q_mean = critic_loss(self.critic, *data, weight_sum, self._autocast_dtype)
+        gather = self._parallel.gather if self._parallel is not None else None
+        loss, q_mean = critic_loss(self.critic, *data, weight_sum, self._autocast_dtype, gather)
         self.critic.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if self._parallel is not None:  # data-parallel: the mean gradient of every rank's minibatch
+            self._parallel.average_gradients(self._critic_parameters)
         grad_norm = th.nn.utils.clip_grad_norm_(self._critic_parameters, self.max_grad_norm)
         self.critic.optimizer.step()
         return th.stack([loss.detach(), q_mean, grad_norm])
@@ -371,6 +399,8 @@ class CGAC(OnPolicyAlgorithm):
         self.actor.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.critic.set_q_requires_grad(True)
+        if self._parallel is not None:
+            self._parallel.average_gradients(self._actor_parameters)
         # What torch.nn.utils.get_total_norm computes (torch >= 2.6 only; this package supports torch >= 2.4)
         grads = [param.grad for param in self._actor_parameters if param.grad is not None]
         grad_norm = th.linalg.vector_norm(th.stack(th._foreach_norm(grads)))
@@ -379,7 +409,8 @@ class CGAC(OnPolicyAlgorithm):
         ent_coef_loss = th.zeros_like(loss)  # logged only when alpha is learned
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
-            ent_coef_loss = update_log_ent_coef(self.log_ent_coef, self.ent_coef_optimizer, *alpha_args)
+            average = self._parallel.mean if self._parallel is not None else None
+            ent_coef_loss = update_log_ent_coef(self.log_ent_coef, self.ent_coef_optimizer, *alpha_args, average=average)
         entropy = -(log_prob * data.weights).sum() / weight_sum
         self.policy.polyak_update(self.tau, self.policy_tau, self.predict_tau)
         return th.stack([loss.detach(), grad_norm, entropy, ent_coef_loss])
@@ -401,6 +432,8 @@ class CGAC(OnPolicyAlgorithm):
             return  # the window does not hold a minibatch yet
         self.policy.set_training_mode(True)
         self._update_learning_rates()
+        if self._parallel is not None:  # an entropy schedule that follows each rank's rewards: one target for all
+            self.target_entropy_beta = self._parallel.mean_float(self.target_entropy_beta)
         target_entropy = -self.target_entropy_beta * float(get_action_dim(self.action_space))
         target_entropy_tensor = th.full((), target_entropy, device=self.device)
 
@@ -448,6 +481,10 @@ class CGAC(OnPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfCGAC:
         check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)
+        if self._parallel is not None and self._parallel.rank != 0:  # rank 0 alone logs and shows progress
+            progress_bar = False
+            if not self._custom_logger:
+                self.set_logger(configure_logger(None, []))
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
@@ -467,7 +504,7 @@ class CGAC(OnPolicyAlgorithm):
         # Aliases into the policy (saved with it), and state rebuilt by _setup_model or at the next learn()
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs", "_obs_keys"]
         excluded += ["_warned_synchronised_resets", "_autocast_dtype", "_update_graphs", "_critic_parameters"]
-        excluded += ["_actor_parameters"]
+        excluded += ["_actor_parameters", "_parallel"]
         excluded += ["gradient_ratio_average"]  # set when a model of sb3_cgac 0.1.0 is loaded (sb3_cgac.compat)
         return [*super()._excluded_save_params(), *excluded]
 

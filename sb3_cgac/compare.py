@@ -40,7 +40,6 @@ from pathlib import Path
 from typing import Any
 
 from sb3_cgac.threads import configure_thread_spin
-from sb3_cgac.vec_env import episode_metrics
 
 import numpy as np
 
@@ -89,6 +88,8 @@ def record_train_stats(
     :param episodes: The model's ``ep_info_buffer`` (the Monitor infos ``r`` and ``l`` of its latest episodes, and
         the adapters' episode statistics, recorded as ``rollout_<key>``)
     """
+    from sb3_cgac.vec_env import episode_metrics  # imports torch, which compare's main process does not load
+
     stats = {}
     for key, value in logged.items():
         if key.startswith("train/") and isinstance(value, int | float | np.number):
@@ -125,6 +126,7 @@ def follow_planned_progress(model: Any, planned_timesteps: int) -> None:
 
 def train_one(args: argparse.Namespace) -> None:
     """Train one (run, seed) pair under the budget, writing its evaluations as it goes."""
+    from sb3_cgac.distributed import init_from_env
     from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model
 
     import torch as th
@@ -133,6 +135,9 @@ def train_one(args: argparse.Namespace) -> None:
     from stable_baselines3.common.vec_env import sync_envs_normalization
 
     th.set_num_threads(args.threads)
+    # Under torchrun (--nproc-per-run) every rank trains on its own envs; rank 0 evaluates and writes, and the budget
+    # and the CSVs count the env steps of all ranks
+    rank, world_size = init_from_env()
     csv_path, done_path, _ = run_paths(Path(args.out), args.run, args.seed)
     backend_kwargs = {"num_threads": args.threads} if args.backend == "envpool" else None
     with tempfile.TemporaryDirectory() as log_folder:
@@ -148,7 +153,7 @@ def train_one(args: argparse.Namespace) -> None:
             n_timesteps=args.steps or 0,
             device="cpu",
         )
-        eval_env = manager.create_envs(args.eval_envs, eval_env=True)
+        eval_env = manager.create_envs(args.eval_envs, eval_env=True) if rank == 0 else None
     rows: list[str] = []
     train_rows: list[dict[str, str]] = []
 
@@ -162,12 +167,16 @@ def train_one(args: argparse.Namespace) -> None:
         def clock(self) -> float:
             return self.seconds + time.perf_counter() - self.resumed
 
+        def steps(self) -> int:
+            return self.num_timesteps * world_size
+
         def evaluate(self) -> None:
             self.seconds = self.clock()
             if args.minutes:
                 self.next_evaluation = self.seconds + args.eval_every * 60
             else:
-                self.next_evaluation = self.num_timesteps + args.eval_every * args.steps
+                self.next_evaluation = self.steps() + args.eval_every * args.steps
+            assert eval_env is not None  # rank 0's
             sync_envs_normalization(self.training_env, eval_env)
             successes: list[bool] = []
             metrics: dict[str, list[float]] = {key: [] for key in args.metrics}
@@ -191,7 +200,7 @@ def train_one(args: argparse.Namespace) -> None:
                 callback=record_episode,
                 return_episode_rewards=True,
             )
-            values = [args.run, str(args.seed), str(self.num_timesteps), f"{self.seconds:.2f}"]
+            values = [args.run, str(args.seed), str(self.steps()), f"{self.seconds:.2f}"]
             values += [f"{np.mean(returns):.3f}", f"{np.mean(lengths):.1f}"]
             values += [f"{np.mean(successes) if successes else 0.0:.3f}"] if args.success_key else []
             values += [f"{np.mean(found):.6g}" if found else "" for found in metrics.values()]
@@ -204,14 +213,14 @@ def train_one(args: argparse.Namespace) -> None:
         def record_train_stats(self) -> None:
             path = train_stats_path(Path(args.out), args.run, args.seed)
             logged, episodes = self.model.logger.name_to_value, self.model.ep_info_buffer or ()
-            record_train_stats(path, train_rows, logged, self.num_timesteps, self.seconds, episodes)
+            record_train_stats(path, train_rows, logged, self.steps(), self.seconds, episodes)
 
         def _on_step(self) -> bool:
             if args.minutes and self.clock() >= args.minutes * 60:
                 return False
-            if args.steps and self.num_timesteps >= args.steps:
+            if args.steps and self.steps() >= args.steps:
                 return True  # the step budget's last rollout: the end of training evaluates the final model
-            if (self.clock() if args.minutes else self.num_timesteps) >= self.next_evaluation:
+            if (self.clock() if args.minutes else self.steps()) >= self.next_evaluation:
                 self.evaluate()
             return True
 
@@ -221,9 +230,11 @@ def train_one(args: argparse.Namespace) -> None:
     evaluator = EvaluateWithinBudget()
     if args.minutes and manager.n_timesteps > 0:
         follow_planned_progress(model, int(manager.n_timesteps))
-    # With a time budget, training runs until the clock is out, whatever the entry's n_timesteps
-    model.learn(args.steps or 10**12, callback=[*manager.callbacks, evaluator])
-    done_path.write_text(json.dumps({"steps": model.num_timesteps, "seconds": evaluator.seconds}))
+    # With a time budget, training runs until the clock is out (rank 0's clock), whatever the entry's n_timesteps
+    callbacks = [*manager.callbacks, *([evaluator] if rank == 0 else [])]
+    model.learn(args.steps // world_size if args.steps else 10**12, callback=callbacks)
+    if rank == 0:
+        done_path.write_text(json.dumps({"steps": model.num_timesteps * world_size, "seconds": evaluator.seconds}))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -232,7 +243,11 @@ def train_one(args: argparse.Namespace) -> None:
 
 
 def launch(args: argparse.Namespace, run: str, seed: int, spec: dict[str, Any]) -> subprocess.Popen:
-    command = [sys.executable, "-m", "sb3_cgac.compare", "--worker", "--run", run, "--file", spec["file"], "--seed", str(seed)]
+    command = [sys.executable, "-m", "sb3_cgac.compare"]
+    if args.nproc_per_run > 1:  # data-parallel CGAC: torchrun starts the ranks of the pair
+        command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(args.nproc_per_run)]
+        command += ["-m", "sb3_cgac.compare"]
+    command += ["--worker", "--run", run, "--file", spec["file"], "--seed", str(seed)]
     command += ["--env", args.env, "--overrides", json.dumps(spec.get("overrides", {}))]
     command += ["--out", args.out, "--backend", args.backend, "--threads", str(args.threads)]
     command += ["--eval-every", str(args.eval_every), "--eval-episodes", str(args.eval_episodes)]
@@ -504,7 +519,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threshold", type=float, default=None, help="return threshold (default: best PPO final return)")
     parser.add_argument("--backend", default="dummy", help="vec-env backend of every run (dummy, envpool, ...)")
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")
-    parser.add_argument("--threads", type=int, default=1, help="torch (and envpool) threads per run")
+    parser.add_argument("--threads", type=int, default=1, help="torch (and envpool) threads per run (per rank)")
+    parser.add_argument(
+        "--nproc-per-run",
+        type=int,
+        default=1,
+        help="ranks of data-parallel CGAC per run, started by torchrun (sb3_cgac.distributed); each has --threads threads",
+    )
     parser.add_argument("--conf-dir", default=None, help="folder of the YAML files (default: this package's hyperparams)")
     parser.add_argument("--out", default=None, help="output folder (default: results/<env>)")
     parser.add_argument("--summary-only", action="store_true", help="only rebuild the CSV, plots and table")

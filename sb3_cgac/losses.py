@@ -3,13 +3,18 @@ CGAC's loss functions, pure functions of tensors and networks (as sb3-contrib ke
 its algorithms).
 """
 
+from collections.abc import Callable
+
 from sb3_cgac.policies import Actor, CGACCritic
 
 import torch as th
 from stable_baselines3.common.type_aliases import PyTorchObs
 
+# A concatenation over the ranks of data-parallel training (last dimension)
+Gather = Callable[[th.Tensor], th.Tensor]
 
-def q_regression_loss(q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor) -> th.Tensor:
+
+def q_regression_loss(q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor, gather: Gather | None = None) -> th.Tensor:
     """
     Sum over critics and batch of the per-sample regression loss of the critics to the Q-GAE targets (paper Eq. 8):
     the adaptive Huber loss of the paper's code, squared below 4x the batch median of ``|delta|`` of each critic and
@@ -18,11 +23,14 @@ def q_regression_loss(q_values: th.Tensor, returns: th.Tensor, weights: th.Tenso
     :param q_values: Q-values of each critic, shape (n_critics, batch)
     :param returns: Q-GAE targets, shape (batch,)
     :param weights: Sample weights (0 for excluded transitions), shape (batch,)
+    :param gather: With data-parallel training, the concatenation over the ranks (``DataParallel.gather``): the
+        median is then that of every rank's minibatch, as one process with all of them would take it
     :return: The summed loss (divide by the weight sum for the mean)
     """
     delta = (q_values - returns) * weights
     abs_delta = delta.abs()
-    threshold = 4.0 * abs_delta.detach().median(dim=-1, keepdim=True).values
+    batch = abs_delta.detach() if gather is None else gather(abs_delta.detach())
+    threshold = 4.0 * batch.median(dim=-1, keepdim=True).values
     linear = 2.0 * threshold * abs_delta - threshold**2
     return th.where(abs_delta < threshold, delta**2, linear).sum()
 
@@ -35,6 +43,7 @@ def critic_loss(
     weights: th.Tensor,
     weight_sum: th.Tensor,
     autocast_dtype: th.dtype | None = None,
+    gather: Gather | None = None,
 ) -> tuple[th.Tensor, th.Tensor]:
     """
     Weighted mean regression loss of all critics (paper Eq. 8, see ``q_regression_loss``).
@@ -46,12 +55,13 @@ def critic_loss(
     :param weights: Sample weights (0 for excluded transitions)
     :param weight_sum: Sum of the weights (at least 1)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
+    :param gather: With data-parallel training, the concatenation over the ranks (see ``q_regression_loss``)
     :return: The loss, and the mean Q-value of the first critic (detached)
     """
     with th.autocast(actions.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
         q_values = critic.q_values(observations, actions)
     q_values = q_values.float()
-    return q_regression_loss(q_values, returns, weights) / weight_sum, q_values[0].detach().mean()
+    return q_regression_loss(q_values, returns, weights, gather) / weight_sum, q_values[0].detach().mean()
 
 
 def actor_loss(
@@ -117,6 +127,7 @@ def update_log_ent_coef(
     weight_sum: th.Tensor,
     target_entropy: th.Tensor | float,
     mode: bool | str = "above_target",
+    average: Callable[[th.Tensor], th.Tensor] | None = None,
 ) -> th.Tensor:
     """
     One update of the learned entropy coefficient (paper Eq. 12) followed by its clamp (``clamped_log_ent_coef``):
@@ -129,9 +140,13 @@ def update_log_ent_coef(
     :param weight_sum: Their sum (at least 1)
     :param target_entropy: The target entropy ``-beta * |A|``
     :param mode: The clamp: True (the paper's), ``"above_target"`` or False
+    :param average: With data-parallel training, the mean over the ranks: of the entropy gap, which is both the
+        gradient and what the clamp decides on, so that every rank updates alpha alike
     :return: The loss of the update (detached)
     """
     entropy_gap = ((log_prob.detach() + target_entropy) * weights).sum() / weight_sum
+    if average is not None:
+        entropy_gap = average(entropy_gap)
     loss = -(log_ent_coef * entropy_gap).sum()
     previous = log_ent_coef.detach().clone()
     optimizer.zero_grad(set_to_none=True)

@@ -5,6 +5,7 @@ from typing import Any
 
 from sb3_cgac.critics import CGACCritic, xavier_init
 from sb3_cgac.torch_layers import (
+    AllReduce,
     DictKeysExtractor,
     DictObsNormalizer,
     NormalizedFeaturesExtractor,
@@ -407,22 +408,23 @@ class CGACPolicy(BasePolicy):
             return features_extractor
         return NormalizedFeaturesExtractor(self.observation_space, features_extractor, self.obs_normalizer)
 
-    def update_obs_normalizer(self, obs: PyTorchObs, ok: np.ndarray) -> None:
+    def update_obs_normalizer(self, obs: PyTorchObs, ok: np.ndarray, all_reduce: AllReduce | None = None) -> None:
         """
         Merge a batch of collected observations into the running statistics (no-op without normalisation).
 
         :param obs: Observations, one row per env
         :param ok: Which rows are usable (the others were non-finite and zeroed)
+        :param all_reduce: With data-parallel training, the sum over the ranks: every rank merges all ranks' rows
         """
         if self.obs_normalizer is None:
             return
         if isinstance(obs, dict):
             rows = slice(None) if ok.all() else th.as_tensor(ok, device=next(iter(obs.values())).device)
             assert isinstance(self.obs_normalizer, DictObsNormalizer)
-            self.obs_normalizer.update({key: value[rows] for key, value in obs.items()})
+            self.obs_normalizer.update({key: value[rows] for key, value in obs.items()}, all_reduce)
         else:
             assert isinstance(self.obs_normalizer, RunningObsNormalizer)
-            self.obs_normalizer.update(obs if ok.all() else obs[th.as_tensor(ok, device=obs.device)])
+            self.obs_normalizer.update(obs if ok.all() else obs[th.as_tensor(ok, device=obs.device)], all_reduce)
 
     def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
         features_extractor = features_extractor or self.make_features_extractor(self.actor_keys)

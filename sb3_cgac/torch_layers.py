@@ -4,6 +4,8 @@ each Box entry of a Dict observation), and features extractors that read only so
 actor on what the robot senses, critics on privileged simulator state too).
 """
 
+from collections.abc import Callable
+
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -12,6 +14,8 @@ from torch import nn
 
 # The authors' code clips normalised observations at +-5
 OBS_CLIP = 5.0
+# A sum over the ranks of data-parallel training
+AllReduce = Callable[[th.Tensor], th.Tensor]
 
 
 class RunningObsNormalizer(nn.Module):
@@ -38,15 +42,30 @@ class RunningObsNormalizer(nn.Module):
         self.register_buffer("count", th.tensor(1e-4))
 
     @th.no_grad()
-    def update(self, obs: th.Tensor) -> None:
+    def update(self, obs: th.Tensor, all_reduce: AllReduce | None = None) -> None:
         """
         Merge a batch of observations into the statistics.
 
         :param obs: Observations, shape (batch, *shape)
+        :param all_reduce: With data-parallel training, the sum over the ranks (``DataParallel.sum``): the batch is
+            then the observations of every rank, and every rank merges the same statistics
         """
         obs = obs.float()
-        batch_count = obs.shape[0]
-        batch_mean, batch_var = obs.mean(dim=0), obs.var(dim=0, unbiased=False)
+        if all_reduce is None:
+            batch_count = float(obs.shape[0])
+            batch_mean, batch_var = obs.mean(dim=0), obs.var(dim=0, unbiased=False)
+        else:
+            # Count, sum and sum of squares of every rank's rows, in float64 for the variance's cancellation
+            rows = obs.double().reshape(obs.shape[0], -1)
+            count = th.full((1,), float(obs.shape[0]), dtype=th.float64, device=obs.device)
+            sums = all_reduce(th.cat([count, rows.sum(dim=0), (rows**2).sum(dim=0)]))
+            batch_count = float(sums[0].item())
+            if batch_count == 0:
+                return
+            size = rows.shape[1]
+            mean64 = sums[1 : 1 + size] / batch_count
+            batch_mean = mean64.float().view(self.mean.shape)
+            batch_var = (sums[1 + size :] / batch_count - mean64**2).clamp_min(0.0).float().view(self.mean.shape)
         delta = batch_mean - self.mean
         total = self.count + batch_count
         self.var.copy_((self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total)
@@ -76,10 +95,10 @@ class DictObsNormalizer(nn.Module):
         )
 
     @th.no_grad()
-    def update(self, obs: dict[str, th.Tensor]) -> None:
+    def update(self, obs: dict[str, th.Tensor], all_reduce: AllReduce | None = None) -> None:
         for key, normalizer in self.normalizers.items():
             assert isinstance(normalizer, RunningObsNormalizer)
-            normalizer.update(obs[key])
+            normalizer.update(obs[key], all_reduce)
 
     def forward(self, obs: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
         return {key: self.normalizers[key](value) if key in self.normalizers else value for key, value in obs.items()}

@@ -11,11 +11,13 @@ import importlib
 import importlib.resources
 import importlib.util
 import sys
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from sb3_cgac import CGAC
+from sb3_cgac.distributed import init_from_env, world
 from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_envpool_task, register_optional_envs
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
@@ -131,7 +133,11 @@ class CGACExperimentManager(ExperimentManager):
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         # An env setting, not a model argument
         self.random_first_episode = bool(hyperparams.pop("random_first_episode", False))
-        return super()._preprocess_hyperparams(hyperparams)
+        result = super()._preprocess_hyperparams(hyperparams)
+        world_size = world()[1]
+        if world_size > 1:  # under torchrun, n_timesteps counts the env steps of all ranks together
+            self.n_timesteps //= world_size
+        return result
 
     @staticmethod
     def _preprocess_schedules(hyperparams: dict[str, Any]) -> dict[str, Any]:
@@ -207,6 +213,13 @@ def _without_option(argv: list[str], name: str) -> list[str]:
     return result
 
 
+def _quiet_rank_argv(argv: list[str]) -> list[str]:
+    """The trainer's arguments for a rank other than 0: rank 0 alone evaluates, logs and saves where asked."""
+    for name in ("-f", "--log-folder", "-tb", "--tensorboard-log", "--eval-freq", "--save-freq", "--verbose"):
+        argv = _without_option(argv, name)
+    return [*argv, "-f", tempfile.mkdtemp(prefix="sb3_cgac_rank_"), "--eval-freq", "-1", "--save-freq", "-1", "--verbose", "0"]
+
+
 def train(argv: list[str] | None = None) -> None:
     """
     Run rl_zoo3's trainer (``rl_zoo3.train.train``) with CGAC registered, this package's hyperparameter files
@@ -216,6 +229,9 @@ def train(argv: list[str] | None = None) -> None:
     """
     register()
     argv = list(sys.argv[1:] if argv is None else argv)
+    rank, _ = init_from_env()  # under torchrun: data-parallel training (sb3_cgac.distributed)
+    if rank != 0:
+        argv = _quiet_rank_argv(argv)
     if "-h" in argv or "--help" in argv:
         print(
             "python -m sb3_cgac.train: rl_zoo3's trainer with CGAC registered (--algo cgac). --algo cgac, ppo and sac "
@@ -227,6 +243,8 @@ def train(argv: list[str] | None = None) -> None:
     if backend in ("dummy", "subproc"):
         argv += ["--vec-env", backend]
     algo = _option_value(argv, ("--algo",)) or "ppo"
+    if world()[1] > 1 and algo != "cgac":
+        raise ValueError(f"Under torchrun only CGAC trains data-parallel; --algo {algo} would train one model per rank.")
     conf = hyperparams_file(algo)
     if _option_value(argv, ("-conf", "--conf-file")) is None and conf is not None:
         argv += ["--conf-file", str(conf)]

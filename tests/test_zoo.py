@@ -369,3 +369,10 @@ def test_ablations_cli_errors_and_conf_dir(tmp_path, capsys, monkeypatch):
     (call,) = calls
     assert "cgac" in call["runs"] and "no_val_avg" in call["runs"]
     assert not {"no_pol_avg", "no_obs_norm"} & set(call["runs"])
+
+
+def test_compare_main_process_does_not_load_torch():
+    """compare sets GOMP_SPINCOUNT for its workers before anything loads torch: importing it must not load torch."""
+    code = "import sys, sb3_cgac.compare; assert 'torch' not in sys.modules, 'sb3_cgac.compare loaded torch'"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]

@@ -1,0 +1,98 @@
+"""
+One rank of the data-parallel tests (tests/test_distributed.py starts two with torchrun on gloo).
+
+    python -m torch.distributed.run --standalone --nproc-per-node 2 tests/distributed_worker.py <check> <folder>
+"""
+
+import copy
+import json
+import sys
+from pathlib import Path
+
+from sb3_cgac import CGAC
+from sb3_cgac.buffers import samples_from_tensors, samples_to_tensors
+from sb3_cgac.distributed import DataParallel, init_from_env
+from sb3_cgac.losses import critic_loss
+
+import torch as th
+import torch.distributed as dist
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+
+
+class FailAt(BaseCallback):
+    """Rank 1 fails after a few steps."""
+
+    def __init__(self, rank: int):
+        super().__init__()
+        self.rank = rank
+
+    def _on_step(self) -> bool:
+        if self.rank == 1 and self.num_timesteps >= 8 * 20:
+            raise RuntimeError("rank 1 fails on purpose")
+        return True
+
+
+def small_model() -> CGAC:
+    env = make_vec_env("Pendulum-v1", n_envs=8)
+    policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True)
+    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, policy_kwargs=policy_kwargs, seed=0)
+
+
+def flat_state(model: CGAC) -> th.Tensor:
+    """Every parameter and buffer of the policy (normaliser statistics included), and log(alpha)."""
+    tensors = [value.detach().reshape(-1).double() for value in model.policy.state_dict().values()]
+    return th.cat([*tensors, model.log_ent_coef.detach().reshape(-1).double()])
+
+
+def main() -> None:
+    check, folder = sys.argv[1], Path(sys.argv[2])
+    rank, world_size = init_from_env(timeout_s=60)
+    model = small_model()
+    result: dict = {"rank": rank, "world_size": world_size}
+    if check == "train":
+        model.learn(8 * 60)
+        states = [th.zeros_like(flat_state(model)) for _ in range(world_size)]
+        dist.all_gather(states, flat_state(model))
+        first_obs = [th.zeros(8, 3) for _ in range(world_size)]
+        dist.all_gather(first_obs, th.as_tensor(model.get_env().reset(), dtype=th.float32))
+        result["identical"] = all(th.equal(states[0], state) for state in states)
+        result["envs_differ"] = not th.equal(first_obs[0], first_obs[1])
+        # The normaliser merged the rows of both ranks: 8 envs x (60 steps + the first observation) each
+        result["normalizer_count"] = float(model.policy.obs_normalizer.count)
+        result["num_timesteps"] = model.num_timesteps
+        if rank == 0:
+            model.save(folder / "model")
+    elif check == "gradients":
+        model.learn(8 * 20)  # fill the window; then one critic gradient on each rank's own minibatch
+        parallel = DataParallel(model.device)
+        minibatch = samples_to_tensors(model.rollout_buffer.sample(model.batch_size))
+        data = samples_from_tensors(minibatch, None)
+        reference = copy.deepcopy(model.critic)  # the same parameters on both ranks, before the update
+        loss, _ = critic_loss(model.critic, *data, data.weights.sum().clamp_min(1.0), None, parallel.gather)
+        model.critic.zero_grad()
+        loss.backward()
+        parallel.average_gradients(list(model.critic.parameters()))
+        averaged = th.cat([param.grad.reshape(-1) for param in model.critic.parameters()])
+        # One process that sees both ranks' minibatches
+        gathered = []
+        for tensor in minibatch:
+            parts = [th.zeros_like(tensor) for _ in range(world_size)]
+            dist.all_gather(parts, tensor.contiguous())
+            gathered.append(th.cat(parts))
+        union = samples_from_tensors(tuple(gathered), None)
+        loss, _ = critic_loss(reference, *union, union.weights.sum().clamp_min(1.0), None)
+        reference.zero_grad()
+        loss.backward()
+        single = th.cat([param.grad.reshape(-1) for param in reference.parameters()])
+        result["max_gap"] = float((averaged - single).abs().max())
+        result["scale"] = float(single.abs().max())
+        result["minibatches_differ"] = not th.equal(gathered[0][: model.batch_size], gathered[0][model.batch_size :])
+    elif check == "fail":
+        model.learn(8 * 200, callback=FailAt(rank))
+    (folder / f"rank{rank}.json").write_text(json.dumps(result))
+    dist.destroy_process_group()
+
+
+if __name__ == "__main__":
+    main()
