@@ -252,9 +252,8 @@ class CGAC(OnPolicyAlgorithm):
         self._update_graphs = UpdateGraphs(
             self._critic_update, self._actor_update, self._optimizers, self.device, self.cuda_graphs
         )
-        self._parallel = DataParallel(self.device) if world()[1] > 1 else None
-        if self._parallel is not None:
-            self._start_data_parallel(self._parallel)
+        # Data-parallel training starts with learn(): a model built or loaded on one rank alone (to evaluate) waits for none
+        self._parallel: DataParallel | None = None
 
     def _start_data_parallel(self, parallel: DataParallel) -> None:
         """Check that the ranks run in step, and give them rank 0's starting parameters (``sb3_cgac.distributed``)."""
@@ -481,6 +480,9 @@ class CGAC(OnPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfCGAC:
         check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)
+        if self._parallel is None and world()[1] > 1:  # under torchrun: every rank calls learn()
+            self._parallel = DataParallel(self.device)
+            self._start_data_parallel(self._parallel)
         if self._parallel is not None and self._parallel.rank != 0:  # rank 0 alone logs and shows progress
             progress_bar = False
             if not self._custom_logger:

@@ -247,7 +247,8 @@ def launch(args: argparse.Namespace, run: str, seed: int, spec: dict[str, Any]) 
     if args.nproc_per_run > 1:  # data-parallel CGAC: torchrun starts the ranks of the pair
         command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(args.nproc_per_run)]
         command += ["-m", "sb3_cgac.compare"]
-    command += ["--worker", "--run", run, "--file", spec["file"], "--seed", str(seed)]
+    # (--run-name, not --run: torchrun's parser would take --run for its --run-path)
+    command += ["--worker", "--run-name", run, "--file", spec["file"], "--seed", str(seed)]
     command += ["--env", args.env, "--overrides", json.dumps(spec.get("overrides", {}))]
     command += ["--out", args.out, "--backend", args.backend, "--threads", str(args.threads)]
     command += ["--eval-every", str(args.eval_every), "--eval-episodes", str(args.eval_episodes)]
@@ -531,7 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--summary-only", action="store_true", help="only rebuild the CSV, plots and table")
     # Internal: one (run, seed) pair
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--run", help=argparse.SUPPRESS)
+    parser.add_argument("--run-name", dest="run", help=argparse.SUPPRESS)
     parser.add_argument("--file", help=argparse.SUPPRESS)
     parser.add_argument("--seed", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--overrides", default="", help=argparse.SUPPRESS)

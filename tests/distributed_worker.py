@@ -18,6 +18,7 @@ import torch as th
 import torch.distributed as dist
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
 
 
 class FailAt(BaseCallback):
@@ -63,6 +64,9 @@ def main() -> None:
         result["num_timesteps"] = model.num_timesteps
         if rank == 0:
             model.save(folder / "model")
+            # Loaded on rank 0 alone (to evaluate) it waits for no other rank
+            loaded = CGAC.load(folder / "model", env=make_vec_env("Pendulum-v1", n_envs=8))
+            result["loaded_predicts"] = bool(th.isfinite(th.as_tensor(loaded.predict(th.zeros(8, 3).numpy())[0])).all())
     elif check == "gradients":
         model.learn(8 * 20)  # fill the window; then one critic gradient on each rank's own minibatch
         parallel = DataParallel(model.device)
@@ -88,6 +92,16 @@ def main() -> None:
         result["max_gap"] = float((averaged - single).abs().max())
         result["scale"] = float(single.abs().max())
         result["minibatches_differ"] = not th.equal(gathered[0][: model.batch_size], gathered[0][model.batch_size :])
+    elif check == "vecnormalize":
+        env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=8), norm_reward=False)
+        model = CGAC("MlpPolicy", env, batch_size=64, n_steps=2, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
+        model.learn(8 * 20)
+        rms = env.obs_rms
+        statistics = th.as_tensor([rms.count, *rms.mean, *rms.var], dtype=th.float64)
+        gathered = [th.zeros_like(statistics) for _ in range(world_size)]
+        dist.all_gather(gathered, statistics)
+        result["identical"] = all(th.equal(gathered[0], found) for found in gathered)
+        result["count"] = float(rms.count)
     elif check == "fail":
         model.learn(8 * 200, callback=FailAt(rank))
     (folder / f"rank{rank}.json").write_text(json.dumps(result))

@@ -42,3 +42,14 @@ def test_export_go1(tmp_path):
     assert "ONNX inputs: ['state']" in stdout
     gap = float(stdout.split("largest gap to predict(): ")[1].split()[0])
     assert gap < 1e-5, stdout
+
+
+def test_distributed(tmp_path):
+    """The example under torchrun: two ranks on gloo, rank 0 saves."""
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
+    script = str(EXAMPLES / "distributed.py")
+    args = ["--env", "Pendulum-v1", "--timesteps", "4096", "--n-envs", "16", "--output", str(tmp_path / "model")]
+    run = subprocess.run([*command, script, *args], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "2 rank(s) trained 4096 steps in all" in run.stdout
+    assert (tmp_path / "model.zip").exists()
