@@ -43,6 +43,7 @@ def main() -> None:
         model.save(args.output)
         print(f"{world_size} rank(s) trained {model.num_timesteps * world_size} steps in all; saved {args.output}.zip")
     if world_size > 1:
+        dist.barrier()  # no rank tears the group down while another still talks to it
         dist.destroy_process_group()
 
 
