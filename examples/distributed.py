@@ -17,10 +17,8 @@ from sb3_cgac.threads import configure_thread_spin
 configure_thread_spin()  # before anything imports torch (envpool's threads)
 
 from sb3_cgac import CGAC  # noqa: E402
-from sb3_cgac.distributed import init_from_env  # noqa: E402
+from sb3_cgac.distributed import init_from_env, leave  # noqa: E402
 from sb3_cgac.vec_env import make_vec_env  # noqa: E402
-
-import torch.distributed as dist  # noqa: E402
 
 
 def main() -> None:
@@ -42,9 +40,7 @@ def main() -> None:
     if rank == 0:
         model.save(args.output)
         print(f"{world_size} rank(s) trained {model.num_timesteps * world_size} steps in all; saved {args.output}.zip")
-    if world_size > 1:
-        dist.barrier()  # no rank tears the group down while another still talks to it
-        dist.destroy_process_group()
+    leave()  # under torchrun: wait for every rank, then end the process group and this process
 
 
 if __name__ == "__main__":

@@ -126,7 +126,7 @@ def follow_planned_progress(model: Any, planned_timesteps: int) -> None:
 
 def train_one(args: argparse.Namespace) -> None:
     """Train one (run, seed) pair under the budget, writing its evaluations as it goes."""
-    from sb3_cgac.distributed import init_from_env
+    from sb3_cgac.distributed import init_from_env, leave
     from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model
 
     import torch as th
@@ -235,6 +235,7 @@ def train_one(args: argparse.Namespace) -> None:
     model.learn(args.steps // world_size if args.steps else 10**12, callback=callbacks)
     if rank == 0:
         done_path.write_text(json.dumps({"steps": model.num_timesteps * world_size, "seconds": evaluator.seconds}))
+    leave()  # under torchrun: every rank ends together
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_cgac import CGAC
-from sb3_cgac.distributed import init_from_env, world
+from sb3_cgac.distributed import init_from_env, leave, world
 from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_envpool_task, register_optional_envs
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
@@ -251,6 +251,7 @@ def train(argv: list[str] | None = None) -> None:
     manager = functools.partial(CGACExperimentManager, backend=backend)
     with _swapped(rl_zoo3.train, "ExperimentManager", manager), _swapped(sys, "argv", ["sb3_cgac.train", *argv]):
         rl_zoo3.train.train()
+    leave()  # under torchrun: every rank ends together
 
 
 def enjoy(argv: list[str] | None = None) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from sb3_cgac import CGAC
 from sb3_cgac.buffers import samples_from_tensors, samples_to_tensors
-from sb3_cgac.distributed import DataParallel, init_from_env
+from sb3_cgac.distributed import DataParallel, init_from_env, leave
 from sb3_cgac.losses import critic_loss
 
 import torch as th
@@ -105,8 +105,7 @@ def main() -> None:
     elif check == "fail":
         model.learn(8 * 200, callback=FailAt(rank))
     (folder / f"rank{rank}.json").write_text(json.dumps(result))
-    dist.barrier()  # no rank tears the group down while another still talks to it
-    dist.destroy_process_group()
+    leave()
 
 
 if __name__ == "__main__":
