@@ -96,12 +96,15 @@ class RslRlVecEnv(RslVecEnvBase):
         done = th.as_tensor(dones, device=self.device)
         self.episode_length_buf += 1
         self.episode_length_buf[done] = 0
-        time_outs = [bool(done_ and info.get("TimeLimit.truncated", False)) for done_, info in zip(dones, infos, strict=True)]
-        episodes = [info["episode"] for info in infos if "episode" in info]
+        # Only the finished envs carry episode ends: no loop over every env at every step
+        finished = np.flatnonzero(dones)
+        time_outs = th.zeros(self.num_envs, dtype=th.bool, device=self.device)
+        time_outs[[int(idx) for idx in finished if infos[idx].get("TimeLimit.truncated", False)]] = True
+        episodes = [infos[idx]["episode"] for idx in finished if "episode" in infos[idx]]
         log = {f"/episode_{key}": value for key, value in episode_metrics(episodes).items()}
         if episodes:
             log["/episode_return"] = float(np.mean([episode["r"] for episode in episodes]))
-        extras = {"time_outs": th.as_tensor(time_outs, device=self.device), "log": log}
+        extras = {"time_outs": time_outs, "log": log}
         rewards_tensor = th.as_tensor(rewards, dtype=th.float32, device=self.device)
         return self._obs, rewards_tensor, done.long(), extras
 
