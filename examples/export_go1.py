@@ -47,8 +47,9 @@ def main() -> None:
     obs = replay_env.reset()
     total, gap = 0.0, 0.0
     for _ in range(args.replay_steps):
+        assert isinstance(obs, dict)  # Go1's Dict observation
         actions = session.run(None, {name: obs[name].astype(np.float32) for name in names})[0]
-        expected, _ = model.predict({"state": obs["state"]}, deterministic=True)  # type: ignore[index]
+        expected, _ = model.predict({"state": obs["state"]}, deterministic=True)
         gap = max(gap, float(np.abs(actions - expected).max()))
         obs, rewards, _, _ = replay_env.step(actions)
         total += float(rewards[0])
