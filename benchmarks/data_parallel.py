@@ -8,8 +8,8 @@ Both set-ups use every core of the machine, so they run one at a time, taking tu
 so that the machine's drift hits both alike. Each set-up is one ``python -m sb3_cgac.compare`` folder (finished seeds
 are skipped when the command runs again). The env count and the batch of the entry are per rank: the ranks step
 N times as many envs as the single process. The table gives env steps/s (all ranks), the final evaluation return at
-the budget, and the return per env step: the data-parallel run's evaluation return interpolated at the env steps
-that the single process reached, beside the single process's final return, seed by seed.
+the budget, and the return per env step: each run's evaluation return interpolated at the env steps that both runs of
+the seed reached (the fewer of their final counts), seed by seed.
 """
 
 import argparse
@@ -40,29 +40,32 @@ def table(args: argparse.Namespace, parallel: Path, single: Path) -> str:
     lines = [
         f"Machine: {machine(threads=1)}; {args.env}, entry `{args.run}`, backend {args.backend}, {args.minutes} min per run",
         "",
-        "| seed | set-up | env steps | steps/s | final return | return at the single process's final steps |",
+        "| seed | set-up | env steps | steps/s | final return | return at the env steps both reached |",
         "| --- | --- | --- | --- | --- | --- |",
     ]
     ratios, at_equal_steps = [], []
     for seed in sorted(set(one["seed"]) & set(par["seed"])):
-        p, o = par[par["seed"] == seed], one[one["seed"] == seed]
-        p_rate = p["steps"].iloc[-1] / p["seconds"].iloc[-1]
-        o_rate = o["steps"].iloc[-1] / o["seconds"].iloc[-1]
-        o_steps = o["steps"].iloc[-1]
-        p_at = float(np.interp(o_steps, p["steps"], p["mean_return"]))
-        ratios.append(p_rate / o_rate)
-        at_equal_steps.append((p_at, o["mean_return"].iloc[-1]))
-        p_final, o_final = p["mean_return"].iloc[-1], o["mean_return"].iloc[-1]
-        ranks, one_process = f"{args.nproc} ranks x 1 thread", f"1 process x {args.nproc} threads"
-        lines.append(f"| {seed} | {ranks} | {p['steps'].iloc[-1]:,} | {p_rate:,.0f} | {p_final:,.0f} | {p_at:,.0f} |")
-        lines.append(f"| {seed} | {one_process} | {o_steps:,} | {o_rate:,.0f} | {o_final:,.0f} | - |")
+        runs = {
+            f"{args.nproc} ranks x 1 thread": par[par["seed"] == seed],
+            f"1 process x {args.nproc} threads": one[one["seed"] == seed],
+        }
+        common = min(frame["steps"].iloc[-1] for frame in runs.values())
+        found = []
+        for name, frame in runs.items():
+            rate = frame["steps"].iloc[-1] / frame["seconds"].iloc[-1]
+            at_common = float(np.interp(common, frame["steps"], frame["mean_return"]))
+            found.append((rate, at_common))
+            steps, final = frame["steps"].iloc[-1], frame["mean_return"].iloc[-1]
+            lines.append(f"| {seed} | {name} | {steps:,} | {rate:,.0f} | {final:,.0f} | {at_common:,.0f} ({common:,}) |")
+        ratios.append(found[0][0] / found[1][0])
+        at_equal_steps.append((found[0][1], found[1][1]))
     if ratios:
         p_mean, o_mean = np.mean([a for a, _ in at_equal_steps]), np.mean([b for _, b in at_equal_steps])
         lines += [
             "",
             f"steps/s ratio (ranks / one process), per seed: {', '.join(f'{r:.2f}' for r in ratios)}; "
             f"mean {np.mean(ratios):.2f}",
-            f"return at equal env steps (ranks / one process), mean over seeds: {p_mean:,.0f} / {o_mean:,.0f}",
+            f"return at the env steps both reached (ranks / one process), mean over seeds: {p_mean:,.0f} / {o_mean:,.0f}",
         ]
     return "\n".join(lines)
 

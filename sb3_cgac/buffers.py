@@ -62,6 +62,55 @@ def sanitize_observations(obs: NumpyObs) -> tuple[NumpyObs, np.ndarray]:
     return _sanitize_array(obs)
 
 
+def sanitize_tensor_observations(obs: TensorObs) -> tuple[TensorObs, th.Tensor]:
+    """
+    ``sanitize_observations`` for observations that are already tensors (torch-native envs), on their device and
+    without a host sync: the rows that hold NaN, Inf or values beyond ``OBS_ABS_LIMIT`` are zeroed.
+
+    :return: The cleaned observations (float ones in float32) and a boolean tensor, True where the row is usable
+    """
+    if isinstance(obs, dict):
+        cleaned = {key: _sanitize_tensor(value) for key, value in obs.items()}
+        ok = th.stack([key_ok for _, key_ok in cleaned.values()]).all(dim=0)
+        return {key: value for key, (value, _) in cleaned.items()}, ok
+    return _sanitize_tensor(obs)
+
+
+def where_rows(mask: th.Tensor, chosen: TensorObs, other: TensorObs) -> TensorObs:
+    """Row by row (first dimension, or the first ``mask.dim()``), ``chosen`` where ``mask`` is True, else ``other``."""
+
+    def select(a: th.Tensor, b: th.Tensor) -> th.Tensor:
+        return th.where(mask.reshape(*mask.shape, *([1] * (a.dim() - mask.dim()))), a, b)
+
+    if isinstance(chosen, dict):
+        assert isinstance(other, dict)
+        return {key: select(value, other[key]) for key, value in chosen.items()}
+    assert isinstance(other, th.Tensor)
+    return select(chosen, other)
+
+
+def obs_to_device(obs: TensorObs, device: th.device) -> TensorObs:
+    if isinstance(obs, dict):
+        return {key: value.to(device) for key, value in obs.items()}
+    return obs.to(device)
+
+
+def bootstrap_observations(
+    obs: TensorObs, truncated: Any, terminal: TerminalObservations | tuple[TensorObs, th.Tensor] | None
+) -> TensorObs:
+    """
+    The observations that a step's next actions are drawn at: ``obs``, except the real terminal observation where a
+    time limit cut the episode (``terminal`` as ``CGACRolloutBuffer.add`` takes it).
+    """
+    if terminal is None:
+        return obs
+    if isinstance(terminal, TerminalObservations):
+        rows = {key: value.clone() for key, value in obs.items()} if isinstance(obs, dict) else obs.clone()
+        _set_obs_rows(rows, terminal.env_indices, terminal.observations)
+        return rows
+    return where_rows(truncated, terminal[0], obs)
+
+
 def observations_to_tensor(obs: Any, device: th.device) -> tuple[TensorObs, np.ndarray]:
     """Sanitize a batch of numpy observations (see ``sanitize_observations``) and move it to ``device`` (no copy on CPU)."""
     obs, ok = sanitize_observations(obs)
@@ -127,6 +176,14 @@ def _sanitize_array(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return obs, ok
 
 
+def _sanitize_tensor(obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    if not obs.is_floating_point():
+        return obs, th.ones(len(obs), dtype=th.bool, device=obs.device)
+    obs = obs.float()
+    ok = (obs.abs() <= OBS_ABS_LIMIT).reshape(len(obs), -1).all(dim=1)
+    return th.where(ok.reshape(-1, *([1] * (obs.dim() - 1))), obs, 0.0), ok
+
+
 def _storage_dtype(space: spaces.Space) -> th.dtype:
     # Float observations are stored in float32 (MuJoCo gives float64); integer ones (images) keep their type
     if space.dtype is not None and np.issubdtype(space.dtype, np.floating):
@@ -138,6 +195,16 @@ def _index_obs(obs: TensorObs, index: th.Tensor | int | slice) -> TensorObs:
     if isinstance(obs, dict):
         return {key: value[index] for key, value in obs.items()}
     return obs[index]
+
+
+def _set_obs_rows(obs: TensorObs, index: Any, values: TensorObs) -> None:
+    if isinstance(obs, dict):
+        assert isinstance(values, dict)
+        for key, value in obs.items():
+            value[index] = values[key]
+    else:
+        assert isinstance(values, th.Tensor)
+        obs[index] = values
 
 
 def _flatten_obs(obs: TensorObs, n_leading: int) -> TensorObs:
@@ -237,6 +304,10 @@ class CGACRolloutBuffer:
         # Whether each transition takes part in the losses (the sampled weight), 1 byte each
         self.weights = th.zeros(shape, dtype=th.bool, device=self.device)
         self.terminal_observations: list[TerminalObservations | None] = [None] * self.buffer_window
+        # Torch-native envs: every env's final observation at every step (only the truncated rows are read), so that
+        # adding a step needs no host sync; allocated at the first such step
+        self.final_observations: TensorObs | None = None
+        self.final_obs_ok: th.Tensor | None = None
         # Observation of the envs now, i.e. the next observation of the newest step
         self.current_obs = self._zeros_obs((self.n_envs,))
         self.current_obs_ok = th.ones(self.n_envs, dtype=th.bool, device=self.device)
@@ -244,8 +315,14 @@ class CGACRolloutBuffer:
         self.size = 0
         # Newest steps whose Qbar and validity are not computed yet
         self.n_pending = 0
-        # Transitions with a non-finite or huge observation or reward, since the last reset
-        self.n_nonfinite = 0
+        # Transitions with a non-finite or huge observation or reward, since the last reset (torch-native envs
+        # count them on the device: read once per rollout by the n_nonfinite property)
+        self._n_nonfinite = 0
+        self._n_nonfinite_device = th.zeros((), dtype=th.int64, device=self.device)
+
+    @property
+    def n_nonfinite(self) -> int:
+        return self._n_nonfinite + int(self._n_nonfinite_device.item())
 
     @property
     def n_transitions(self) -> int:
@@ -261,7 +338,7 @@ class CGACRolloutBuffer:
             assert isinstance(obs, th.Tensor)
             _write_row(storage, index, obs)
 
-    def set_current_obs(self, obs: TensorObs, obs_ok: np.ndarray) -> None:
+    def set_current_obs(self, obs: TensorObs, obs_ok: np.ndarray | th.Tensor) -> None:
         """
         Set the observation the next step starts from (after a reset of the envs).
 
@@ -274,16 +351,17 @@ class CGACRolloutBuffer:
     def add(
         self,
         actions: th.Tensor,
-        rewards: np.ndarray,
-        terminated: np.ndarray,
-        truncated: np.ndarray,
+        rewards: np.ndarray | th.Tensor,
+        terminated: np.ndarray | th.Tensor,
+        truncated: np.ndarray | th.Tensor,
         next_obs: TensorObs,
-        next_obs_ok: np.ndarray,
+        next_obs_ok: np.ndarray | th.Tensor,
         next_actions: th.Tensor,
-        terminal: TerminalObservations | None = None,
+        terminal: TerminalObservations | tuple[TensorObs, th.Tensor] | None = None,
     ) -> None:
         """
         Store one step of all envs; the step starts from the current observation, which becomes ``next_obs``.
+        The flags and rewards are NumPy arrays (SB3 VecEnvs) or tensors (torch-native envs, no host sync).
 
         :param actions: Squashed actions taken, shape (n_envs, action_dim)
         :param rewards: Rewards, shape (n_envs,)
@@ -293,18 +371,22 @@ class CGACRolloutBuffer:
         :param next_obs_ok: Which rows of ``next_obs`` were finite before sanitizing
         :param next_actions: Averaged-actor samples at the next observation, or at the terminal observation
             for truncated envs, shape (n_envs, action_dim)
-        :param terminal: Terminal observations of the truncated envs
+        :param terminal: Terminal observations of the truncated envs: ``TerminalObservations`` (NumPy path), or
+            (final observations of every env, their validity) for torch-native envs, of which the truncated rows count
         """
         pos = self.pos
-        rewards = np.asarray(rewards, dtype=np.float32)
-        rewards_ok = np.isfinite(rewards)
-        next_obs_ok = np.asarray(next_obs_ok)
-        # Counting costs a few array operations: only done when something is not finite (rarely)
-        if not (rewards_ok.all() and next_obs_ok.all()):
-            rewards = np.where(rewards_ok, rewards, 0.0).astype(np.float32)
-            self.n_nonfinite += int(np.count_nonzero(~rewards_ok | ~next_obs_ok))
-        if terminal is not None:
-            self.n_nonfinite += int(terminal.env_indices.numel() - terminal.ok.sum().item())
+        if isinstance(rewards, th.Tensor):
+            rewards, rewards_ok = self._count_nonfinite_tensors(rewards, next_obs_ok, truncated, terminal)  # type: ignore[arg-type]
+        else:
+            rewards = np.asarray(rewards, dtype=np.float32)
+            rewards_ok = np.isfinite(rewards)
+            next_obs_ok = np.asarray(next_obs_ok)
+            # Counting costs a few array operations: only done when something is not finite (rarely)
+            if not (rewards_ok.all() and next_obs_ok.all()):
+                rewards = np.where(rewards_ok, rewards, 0.0).astype(np.float32)
+                self._n_nonfinite += int(np.count_nonzero(~rewards_ok | ~next_obs_ok))
+            if isinstance(terminal, TerminalObservations):
+                self._n_nonfinite += int(terminal.env_indices.numel() - terminal.ok.sum().item())
 
         self._write_obs(self.observations, pos, self.current_obs)
         _write_row(self.obs_ok, pos, self.current_obs_ok)
@@ -314,12 +396,34 @@ class CGACRolloutBuffer:
         _write_row(self.reward_ok, pos, rewards_ok)
         _write_row(self.terminated, pos, terminated)
         _write_row(self.truncated, pos, truncated)
-        self.terminal_observations[pos] = terminal
+        if isinstance(terminal, tuple) and not isinstance(terminal, TerminalObservations):
+            self._write_final_observations(pos, *terminal)
+        else:
+            self.terminal_observations[pos] = terminal
         self.set_current_obs(next_obs, next_obs_ok)
 
         self.pos = (pos + 1) % self.buffer_window
         self.size = min(self.size + 1, self.buffer_window)
         self.n_pending = min(self.n_pending + 1, self.buffer_window)
+
+    def _count_nonfinite_tensors(
+        self, rewards: th.Tensor, next_obs_ok: th.Tensor, truncated: th.Tensor, terminal: tuple[TensorObs, th.Tensor] | None
+    ) -> tuple[th.Tensor, th.Tensor]:
+        rewards = rewards.to(self.device, th.float32)
+        rewards_ok = th.isfinite(rewards)
+        bad = ~rewards_ok | ~next_obs_ok
+        if terminal is not None:
+            bad |= truncated & ~terminal[1]
+        self._n_nonfinite_device += bad.sum()
+        return th.where(rewards_ok, rewards, 0.0), rewards_ok
+
+    def _write_final_observations(self, pos: int, final_obs: TensorObs, final_ok: th.Tensor) -> None:
+        if self.final_observations is None:
+            self.final_observations = self._zeros_obs((self.buffer_window, self.n_envs))
+            self.final_obs_ok = th.ones((self.buffer_window, self.n_envs), dtype=th.bool, device=self.device)
+        assert self.final_obs_ok is not None
+        self._write_obs(self.final_observations, pos, final_obs)
+        _write_row(self.final_obs_ok, pos, final_ok)
 
     def _chronological_slots(self, n_steps: int) -> th.Tensor:
         # Ring positions of the newest `n_steps` steps, oldest first
@@ -345,6 +449,20 @@ class CGACRolloutBuffer:
         else:
             assert isinstance(self.current_obs, th.Tensor)
             next_obs = th.cat([next_obs, self.current_obs[None]])
+        next_ok = th.cat([self.obs_ok[slots[1:]], self.current_obs_ok[None]])
+        # Time-limit truncations bootstrap from the real terminal observation (paper Sec. 4.1)
+        if self.final_observations is not None:  # torch-native envs: every row kept, the truncated ones chosen
+            assert self.final_obs_ok is not None
+            truncated = self.truncated[slots]
+            next_obs = where_rows(truncated, _index_obs(self.final_observations, slots), next_obs)
+            next_ok = th.where(truncated, self.final_obs_ok[slots], next_ok)
+        # SB3 VecEnvs: the truncated envs' rows (a loop over steps, only when some step holds truncations)
+        positions = [(self.pos - n_new + row) % self.buffer_window for row in range(n_new)]
+        for row, slot in enumerate(positions):
+            terminal = self.terminal_observations[slot]
+            if terminal is not None:
+                _set_obs_rows(next_obs, (row, terminal.env_indices), terminal.observations)
+                next_ok[row, terminal.env_indices] = terminal.ok
         flat_obs = _flatten_obs(next_obs, 2)
         flat_actions = self.next_actions[slots].reshape(-1, self.action_dim)
         values = th.cat(
@@ -354,15 +472,6 @@ class CGACRolloutBuffer:
             ]
         )
         self.next_values[slots] = values.reshape(n_new, self.n_envs)
-        next_ok = th.cat([self.obs_ok[slots[1:]], self.current_obs_ok[None]])
-
-        # Time-limit truncations bootstrap from the real terminal observation (a loop over steps, not envs)
-        for row, slot in enumerate(slots.tolist()):
-            terminal = self.terminal_observations[slot]
-            if terminal is not None:
-                idx = terminal.env_indices
-                self.next_values[slot, idx] = target_q(terminal.observations, self.next_actions[slot, idx])
-                next_ok[row, idx] = terminal.ok
 
         valid = self.obs_ok[slots] & self.reward_ok[slots] & (self.terminated[slots] | next_ok)
         self.weights[slots] = valid
@@ -420,6 +529,8 @@ class CGACRolloutBuffer:
         tensors = [self.actions, self.next_actions, self.rewards, self.terminated, self.truncated]
         tensors += [self.obs_ok, self.reward_ok, self.next_values, self.returns, self.weights, self.current_obs_ok]
         total = _nbytes(self.observations) + _nbytes(self.current_obs) + sum(_nbytes(t) for t in tensors)
+        if self.final_observations is not None:
+            total += _nbytes(self.final_observations)
         return total + sum(_nbytes(t.observations) for t in self.terminal_observations if t is not None)
 
     def raw_transition_nbytes(self) -> int:

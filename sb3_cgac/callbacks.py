@@ -10,6 +10,7 @@ Use them from Python (``model.learn(..., callback=RewardEntropySchedule(...))``)
 from typing import Any
 
 import numpy as np
+import torch as th
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.type_aliases import MaybeCallback
 
@@ -97,6 +98,8 @@ class RewardEntropySchedule(EntropyScheduleCallback):
     def _on_step(self) -> bool:
         vec_normalize = self.model.get_vec_normalize_env()
         rewards = vec_normalize.get_original_reward() if vec_normalize is not None else self.locals["rewards"]
+        if isinstance(rewards, th.Tensor):  # a torch-native env's (TorchVecEnv): one read of the step's rewards
+            rewards = rewards.cpu().numpy()
         finite = np.asarray(rewards)[np.isfinite(rewards)]
         if finite.size > 0:
             self.reward_average = self.ema * self.reward_average + (1.0 - self.ema) * float(finite.mean())

@@ -2,9 +2,12 @@ from typing import Any, ClassVar, TypeVar
 
 from sb3_cgac.buffers import (
     CGACRolloutBuffer,
+    bootstrap_observations,
+    obs_to_device,
     observations_to_tensor,
     samples_from_tensors,
     samples_to_tensors,
+    sanitize_tensor_observations,
     split_episode_ends,
 )
 from sb3_cgac.compat import upgrade_saved_attributes
@@ -24,7 +27,7 @@ from sb3_cgac.hyperparameters import (
 )
 from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
-from sb3_cgac.vec_env import episode_metrics
+from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 from sb3_cgac.wrappers import warn_synchronised_resets
 
 import numpy as np
@@ -255,17 +258,6 @@ class CGAC(OnPolicyAlgorithm):
         # Data-parallel training starts with learn(): a model built or loaded on one rank alone (to evaluate) waits for none
         self._parallel: DataParallel | None = None
 
-    def _start_data_parallel(self, parallel: DataParallel) -> None:
-        """Check that the ranks run in step, and give them rank 0's starting parameters (``sb3_cgac.distributed``)."""
-        if self.cuda_graphs:
-            raise ValueError("CGAC: cuda_graphs=True does not run with torch.distributed yet; pass cuda_graphs=False.")
-        for name in ("n_envs", "n_steps", "batch_size", "critic_updates_per_step"):
-            parallel.check_same(name, getattr(self, name))
-        parallel.broadcast_tensors(
-            [*self.policy.state_dict().values(), *([self.log_ent_coef] if self.log_ent_coef is not None else [])]
-        )
-        parallel.sync_vec_normalize(self.get_vec_normalize_env())
-
     def set_random_seed(self, seed: int | None = None) -> None:
         # Under torch.distributed each rank gets its own seed: its own envs and minibatches
         super().set_random_seed(None if seed is None else seed + world()[0] * RANK_SEED_STRIDE)
@@ -293,16 +285,42 @@ class CGAC(OnPolicyAlgorithm):
         """The optimizers of the updates: actor, critics and, when alpha is learned, alpha's."""
         return [self.actor.optimizer, self.critic.optimizer, *([self.ent_coef_optimizer] if self.ent_coef_optimizer else [])]
 
-    def _start_rollout(self, buffer: CGACRolloutBuffer) -> None:
+    def _start_rollout(self, buffer: CGACRolloutBuffer, tensor_env: TorchVecEnv | None) -> None:
         # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
         # set_env, load): start a new window from `_last_obs`.
-        obs, ok = observations_to_tensor(self._last_obs, self.device)
+        if tensor_env is not None:
+            obs, ok = sanitize_tensor_observations(obs_to_device(tensor_env.last_observations, self.device))
+        else:
+            obs, ok = observations_to_tensor(self._last_obs, self.device)  # type: ignore[assignment]
         buffer.reset()
         buffer.set_current_obs(obs, ok)
         self.policy.update_obs_normalizer(obs, ok, self._parallel.sum if self._parallel else None)
         with th.inference_mode():
             self._pending_actions = self.actor_avg.sample(obs, 1)[0]
         self._rollout_obs = self._last_obs
+
+    def _step_numpy(self, env: VecEnv, actions: th.Tensor) -> tuple[Any, ...]:
+        """One step of an SB3 VecEnv: NumPy actions out, observations and flags back (SB3's episode contract)."""
+        new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
+        terminated, truncated, terminal = split_episode_ends(dones, infos, self.device)
+        all_truncated = terminal is not None and len(terminal.env_indices) == env.num_envs >= FEW_ENVS
+        if all_truncated and not self._warned_synchronised_resets:
+            self._warned_synchronised_resets = True
+            warn_synchronised_resets()
+        if dones.any():  # episode statistics only come with finished episodes
+            done_idx = np.flatnonzero(dones)
+            self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
+        obs, obs_ok = observations_to_tensor(new_obs, self.device)
+        return new_obs, obs, obs_ok, rewards, dones, infos, terminated, truncated, terminal
+
+    def _step_tensors(self, env: TorchVecEnv, actions: th.Tensor) -> tuple[Any, ...]:
+        """One step of a torch-native env: tensors on the device throughout, no host sync."""
+        step = env.step_tensors(self.policy.unscale_action_tensor(actions))
+        obs, obs_ok = sanitize_tensor_observations(obs_to_device(step.observations, self.device))
+        final, final_ok = sanitize_tensor_observations(obs_to_device(step.final_observations, self.device))
+        terminated, truncated = step.terminated.to(self.device), step.truncated.to(self.device)
+        dones, terminal = terminated | truncated, (final, final_ok)
+        return step.observations, obs, obs_ok, step.rewards.to(self.device), dones, step.infos, terminated, truncated, terminal
 
     def collect_rollouts(  # type: ignore[override]
         self,
@@ -313,46 +331,39 @@ class CGAC(OnPolicyAlgorithm):
     ) -> bool:
         """
         Collect ``n_rollout_steps`` steps of every env with the averaged actor into the window (the value targets
-        are computed at the start of ``train()``). One forward pass of the averaged actor per step gives both the
-        next action of the step just taken and the action of the following step.
+        are computed at the start of ``train()``). Each step draws the action of the following step at the new
+        observations and the "next action" of the step just taken at its next observation (the real terminal one at
+        a time limit). A ``TorchVecEnv`` is stepped with tensors, without host syncs; its finished episodes reach
+        ``ep_info_buffer`` at the end of the rollout.
 
         :return: True if ``n_rollout_steps`` were collected, False if a callback stopped the rollout
         """
         assert self._last_obs is not None, "No previous observation was provided"
         if self.policy.training:
             self.policy.set_training_mode(False)
+        tensor_env = env if isinstance(env, TorchVecEnv) else None
         if self._pending_actions is None or self._last_obs is not self._rollout_obs:
-            self._start_rollout(rollout_buffer)
+            self._start_rollout(rollout_buffer, tensor_env)
         assert self._pending_actions is not None
         callback.on_rollout_start()
 
         for _ in range(n_rollout_steps):
             actions = self._pending_actions
-            new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
+            step = self._step_tensors(tensor_env, actions) if tensor_env is not None else self._step_numpy(env, actions)
+            new_obs, obs_tensor, obs_ok, rewards, dones, infos, terminated, truncated, terminal = step
             self.num_timesteps += env.num_envs
-
-            terminated, truncated, terminal = split_episode_ends(dones, infos, self.device)
-            all_truncated = terminal is not None and len(terminal.env_indices) == env.num_envs >= FEW_ENVS
-            if all_truncated and not self._warned_synchronised_resets:
-                self._warned_synchronised_resets = True
-                warn_synchronised_resets()
-
-            obs_tensor, obs_ok = observations_to_tensor(new_obs, self.device)
             self.policy.update_obs_normalizer(obs_tensor, obs_ok, self._parallel.sum if self._parallel else None)
             with th.inference_mode():
-                # Two draws of the averaged actor at s_{t+1}: the action of the next step, and the
-                # "next action" a'_{t+1} of this transition for its value target
-                next_step_actions, next_actions = self.actor_avg.sample(obs_tensor, 2)
-                if terminal is not None:
-                    next_actions[terminal.env_indices] = self.actor_avg.sample(terminal.observations, 1)[0]
+                # The action of the next step at s_{t+1}, and the "next action" a'_{t+1} of this transition for its
+                # value target (at the terminal observation of a truncated episode)
+                next_step_actions = self.actor_avg.sample(obs_tensor, 1)[0]
+                next_actions = self.actor_avg.sample(bootstrap_observations(obs_tensor, truncated, terminal), 1)[0]
 
             rollout_buffer.add(actions, rewards, terminated, truncated, obs_tensor, obs_ok, next_actions, terminal)
-            self._last_obs = self._rollout_obs = new_obs  # type: ignore[assignment]
-            self._last_episode_starts = dones
+            self._last_obs = self._rollout_obs = new_obs
             self._pending_actions = next_step_actions
-            if dones.any():  # episode statistics only come with finished episodes
-                done_idx = np.flatnonzero(dones)
-                self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
+            if tensor_env is None:
+                self._last_episode_starts = dones
 
             callback.update_locals(locals())
             keep_going = callback.on_step()
@@ -361,7 +372,8 @@ class CGAC(OnPolicyAlgorithm):
             if not keep_going:
                 return False
 
-        self.logger.record("rollout/nonfinite_transitions", rollout_buffer.n_nonfinite)
+        if tensor_env is not None:  # one host read of the rollout's finished episodes
+            self.ep_info_buffer.extend(tensor_env.pop_episodes())  # type: ignore[union-attr]
         if self._parallel is not None:  # one set of VecNormalize statistics for every rank
             self._parallel.sync_vec_normalize(self.get_vec_normalize_env())
         callback.update_locals(locals())
@@ -448,24 +460,25 @@ class CGAC(OnPolicyAlgorithm):
                 actor_stats.append(actor_update(target_entropy_tensor, *minibatch))
         self.policy.set_training_mode(False)
 
-        if not self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef])):
+        # One read from the device per iteration (no host sync inside the update loop): finiteness and statistics
+        ent_coef = self.ent_coef_tensor if self.log_ent_coef is None else th.exp(self.log_ent_coef.detach())
+        finite = self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef]))
+        std = th.exp(self.actor.log_std.detach()).mean()
+        read = [finite.float(), ent_coef.reshape(()), std, *th.stack(critic_stats).mean(dim=0)]
+        read += [*th.stack(actor_stats).mean(dim=0)] if actor_stats else []
+        values = th.stack(read).tolist()
+        if not values[0]:
             raise RuntimeError(
                 f"CGAC: network parameters became NaN/Inf after {self._n_updates} critic updates; training cannot go on. "
                 "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
                 "too high, or gradient clipping turned off (max_grad_norm)."
             )
-        # One read of the statistics per iteration (no host-device sync inside the update loop)
-        critic_names = ("critic_loss", "q_mean", "critic_grad_norm")
-        stats = dict(zip(critic_names, th.stack(critic_stats).mean(dim=0).tolist(), strict=True))
-        if actor_stats:
-            names = ("actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss")
-            stats.update(zip(names, th.stack(actor_stats).mean(dim=0).tolist(), strict=True))
-            if self.ent_coef_optimizer is None:
-                del stats["ent_coef_loss"]
-        ent_coef = self.ent_coef_tensor if self.log_ent_coef is None else th.exp(self.log_ent_coef.detach())
-        stats.update(target_entropy=target_entropy, beta=self.target_entropy_beta, ent_coef=ent_coef.item())
-        stats.update(tau=self.tau, policy_tau=self.policy_tau)
-        stats["std"] = th.exp(self.actor.log_std.detach()).mean().item()
+        names = ["ent_coef", "std", "critic_loss", "q_mean", "critic_grad_norm"]
+        names += ["actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss"] if actor_stats else []
+        stats = dict(zip(names, values[1:], strict=True))
+        if self.ent_coef_optimizer is None:
+            stats.pop("ent_coef_loss", None)
+        stats.update(target_entropy=target_entropy, beta=self.target_entropy_beta, tau=self.tau, policy_tau=self.policy_tau)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, value in stats.items():
             self.logger.record(f"train/{key}", value)
@@ -481,8 +494,13 @@ class CGAC(OnPolicyAlgorithm):
     ) -> SelfCGAC:
         check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)
         if self._parallel is None and world()[1] > 1:  # under torchrun: every rank calls learn()
+            if self.cuda_graphs:
+                raise ValueError("CGAC: cuda_graphs=True does not run with torch.distributed yet; pass cuda_graphs=False.")
             self._parallel = DataParallel(self.device)
-            self._start_data_parallel(self._parallel)
+            # The ranks run in step from rank 0's starting parameters
+            settings = {name: getattr(self, name) for name in ("n_envs", "n_steps", "batch_size", "critic_updates_per_step")}
+            tensors = [*self.policy.state_dict().values(), *([self.log_ent_coef] if self.log_ent_coef is not None else [])]
+            self._parallel.start(settings, tensors, self.get_vec_normalize_env())
         if self._parallel is not None and self._parallel.rank != 0:  # rank 0 alone logs and shows progress
             progress_bar = False
             if not self._custom_logger:
@@ -500,13 +518,16 @@ class CGAC(OnPolicyAlgorithm):
         # The adapters' episode statistics (reward components, task metrics) beside rollout/ep_rew_mean
         for key, value in episode_metrics(self.ep_info_buffer or ()).items():
             self.logger.record(f"rollout/ep_{key}_mean", value)
+        # Read when the logs are written (a torch-native env counts them on the device)
+        self.logger.record("rollout/nonfinite_transitions", self.rollout_buffer.n_nonfinite)
         super().dump_logs(iteration)
 
     def _excluded_save_params(self) -> list[str]:
         # Aliases into the policy (saved with it), and state rebuilt by _setup_model or at the next learn()
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs", "_obs_keys"]
         excluded += ["_warned_synchronised_resets", "_autocast_dtype", "_update_graphs", "_critic_parameters"]
-        excluded += ["_actor_parameters", "_parallel"]
+        # The envs' observations (a torch-native env's tensors may be on a GPU): learn() resets a new env anyway
+        excluded += ["_actor_parameters", "_parallel", "_last_obs"]
         excluded += ["gradient_ratio_average"]  # set when a model of sb3_cgac 0.1.0 is loaded (sb3_cgac.compat)
         return [*super()._excluded_save_params(), *excluded]
 

@@ -10,7 +10,7 @@ window, and every update averages the gradients of all ranks, so that the ranks 
 import datetime
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch as th
@@ -81,6 +81,16 @@ class DataParallel:
         self.device = device
         self._gather_sum = dist.get_backend() == "gloo" and self.world_size <= GATHER_SUM_MAX_RANKS
         self._vec_normalize_sync: VecNormalizeSync | None = None
+
+    def start(self, settings: Mapping[str, int], tensors: Sequence[th.Tensor], vec_normalize: VecNormalize | None) -> None:
+        """
+        Start data-parallel training: check that every rank has the same ``settings`` (env counts, batch sizes: the
+        updates of all ranks run in step), give every rank rank 0's ``tensors`` (parameters) and VecNormalize statistics.
+        """
+        for name, value in settings.items():
+            self.check_same(name, value)
+        self.broadcast_tensors(tensors)
+        self.sync_vec_normalize(vec_normalize)
 
     def sync_vec_normalize(self, vec_normalize: VecNormalize | None) -> None:
         """

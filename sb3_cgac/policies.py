@@ -205,6 +205,8 @@ class CGACPolicy(BasePolicy):
     actor_predict: Actor | None
     critic: CGACCritic
     critic_target: CGACCritic
+    action_low: th.Tensor
+    action_high: th.Tensor
 
     def __init__(
         self,
@@ -294,6 +296,10 @@ class CGACPolicy(BasePolicy):
             "share_features_extractor": share_features_extractor,
             "use_xavier_init": use_xavier_init,
         }
+        # The action bounds as tensors, for unscale_action_tensor (not saved: the action space gives them)
+        assert isinstance(self.action_space, spaces.Box)
+        self.register_buffer("action_low", th.as_tensor(self.action_space.low, dtype=th.float32), persistent=False)
+        self.register_buffer("action_high", th.as_tensor(self.action_space.high, dtype=th.float32), persistent=False)
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -408,7 +414,7 @@ class CGACPolicy(BasePolicy):
             return features_extractor
         return NormalizedFeaturesExtractor(self.observation_space, features_extractor, self.obs_normalizer)
 
-    def update_obs_normalizer(self, obs: PyTorchObs, ok: np.ndarray, all_reduce: AllReduce | None = None) -> None:
+    def update_obs_normalizer(self, obs: PyTorchObs, ok: np.ndarray | th.Tensor, all_reduce: AllReduce | None = None) -> None:
         """
         Merge a batch of collected observations into the running statistics (no-op without normalisation).
 
@@ -418,13 +424,8 @@ class CGACPolicy(BasePolicy):
         """
         if self.obs_normalizer is None:
             return
-        if isinstance(obs, dict):
-            rows = slice(None) if ok.all() else th.as_tensor(ok, device=next(iter(obs.values())).device)
-            assert isinstance(self.obs_normalizer, DictObsNormalizer)
-            self.obs_normalizer.update({key: value[rows] for key, value in obs.items()}, all_reduce)
-        else:
-            assert isinstance(self.obs_normalizer, RunningObsNormalizer)
-            self.obs_normalizer.update(obs if ok.all() else obs[th.as_tensor(ok, device=obs.device)], all_reduce)
+        device = next(iter(obs.values())).device if isinstance(obs, dict) else obs.device
+        self.obs_normalizer.update(obs, th.as_tensor(ok, device=device), all_reduce)  # type: ignore[arg-type]
 
     def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
         features_extractor = features_extractor or self.make_features_extractor(self.actor_keys)
@@ -446,6 +447,11 @@ class CGACPolicy(BasePolicy):
                 )
         return super().obs_to_tensor(observation)
 
+    def unscale_action_tensor(self, actions: th.Tensor) -> th.Tensor:
+        """SB3's ``unscale_action`` on the policy's device: squashed actions in [-1, 1] to the action space's bounds."""
+        low, high = self.action_low, self.action_high
+        return low + (0.5 * (actions + 1.0) * (high - low))
+
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)
 
@@ -466,13 +472,16 @@ class CGACPolicy(BasePolicy):
         """
         return self.critic_target.q_values(obs, actions).min(dim=0).values
 
-    def parameters_finite(self, *extra: th.Tensor) -> bool:
-        """Whether the trained networks' parameters (and the ``extra`` tensors) are finite, in one foreach call."""
+    def parameters_finite(self, *extra: th.Tensor) -> th.Tensor:
+        """
+        Whether the trained networks' parameters (and the ``extra`` tensors) are finite, in one foreach call: a boolean
+        tensor on the device (read it with the other statistics: no host sync of its own).
+        """
         # The averaged copies are convex combinations of these, so they need no check of their own. A norm is finite
         # exactly when its tensor is (up to overflow, itself a failure)
         tensors = (*self.actor.parameters(), *self.critic.parameters(), *extra)
         norms = th._foreach_norm([tensor.detach() for tensor in tensors])
-        return bool(th.stack(norms).isfinite().all())
+        return th.stack(norms).isfinite().all()
 
     def set_training_mode(self, mode: bool) -> None:
         """

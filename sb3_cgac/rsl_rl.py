@@ -13,7 +13,7 @@ import io
 import sys
 from typing import Any, ClassVar, TypeVar
 
-from sb3_cgac.vec_env import episode_metrics
+from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 
 import numpy as np
 import torch as th
@@ -39,8 +39,13 @@ BOX_GROUP = "policy"
 MODEL_KWARGS = ("hidden_dims", "actor_hidden_dims", "critic_hidden_dims", "activation", "init_noise_std", "obs_normalization")
 
 
-def observation_groups(obs: np.ndarray | dict[str, np.ndarray], device: th.device) -> TensorDict:
-    """A batch of SB3 observations as rsl_rl's TensorDict of observation groups (a Box observation: ``policy``)."""
+def observation_groups(
+    obs: np.ndarray | dict[str, np.ndarray] | th.Tensor | dict[str, th.Tensor], device: th.device
+) -> TensorDict:
+    """
+    A batch of observations (arrays or tensors, a Box's or a Dict's) as rsl_rl's TensorDict of observation groups
+    (a Box observation: ``policy``).
+    """
     groups = obs if isinstance(obs, dict) else {BOX_GROUP: obs}
     tensors = {key: th.as_tensor(value, dtype=th.float32, device=device) for key, value in groups.items()}
     return TensorDict(tensors, batch_size=[len(next(iter(tensors.values())))], device=device)
@@ -51,7 +56,9 @@ class RslRlVecEnv(RslVecEnvBase):
     rsl_rl's ``VecEnv`` interface over a Stable-Baselines3 ``VecEnv``: observations as a TensorDict of groups (the
     keys of a Dict observation, ``policy`` for a Box), ``extras["time_outs"]`` from SB3's ``TimeLimit.truncated``
     (rsl_rl then bootstraps those rewards with the value of the step's observation), and the Monitor episode
-    statistics in ``extras["log"]``. Actions are clipped to the action space, as SB3's algorithms do.
+    statistics in ``extras["log"]``. Actions are clipped to the action space, as SB3's algorithms do. A
+    ``TorchVecEnv`` (GPU simulators) is stepped with tensors, without host copies; its episodes are read by ``RslPPO``
+    once per rollout (``extras["log"]`` stays empty).
 
     :param venv: The SB3 vector env (e.g. from ``sb3_cgac.vec_env.make_vec_env``, with or without ``VecNormalize``)
     :param device: Device of the tensors
@@ -89,6 +96,8 @@ class RslRlVecEnv(RslVecEnvBase):
     def step(self, actions: th.Tensor) -> tuple[TensorDict, th.Tensor, th.Tensor, dict]:
         space = self.venv.action_space
         assert isinstance(space, spaces.Box)
+        if isinstance(self.venv, TorchVecEnv):
+            return self._step_tensors(actions, space)
         clipped = np.clip(actions.detach().cpu().numpy().reshape(-1, *space.shape), space.low, space.high)
         obs, rewards, dones, infos = self.venv.step(clipped)
         self.last_infos, self.last_obs = infos, obs  # type: ignore[assignment]
@@ -107,6 +116,18 @@ class RslRlVecEnv(RslVecEnvBase):
         extras = {"time_outs": time_outs, "log": log}
         rewards_tensor = th.as_tensor(rewards, dtype=th.float32, device=self.device)
         return self._obs, rewards_tensor, done.long(), extras
+
+    def _step_tensors(self, actions: th.Tensor, space: spaces.Box) -> tuple[TensorDict, th.Tensor, th.Tensor, dict]:
+        assert isinstance(self.venv, TorchVecEnv)
+        low, high = (th.as_tensor(bound, device=actions.device) for bound in (space.low, space.high))
+        step = self.venv.step_tensors(th.clamp(actions.reshape(-1, *space.shape), low, high))
+        self.last_obs = step.observations  # type: ignore[assignment]
+        self._obs = observation_groups(step.observations, self.device)
+        done = (step.terminated | step.truncated).to(self.device)
+        self.episode_length_buf += 1
+        self.episode_length_buf.masked_fill_(done, 0)
+        extras = {"time_outs": step.truncated.to(self.device), "log": {}}
+        return self._obs, step.rewards.to(self.device, th.float32), done.long(), extras
 
 
 class RslActorCriticPolicy(BasePolicy):
@@ -320,19 +341,22 @@ class RslPPO(BaseAlgorithm):
         # predict() (an evaluation) leaves the models in eval mode, where rsl_rl's normalisers stop learning
         self.alg.train_mode()
         callback.on_rollout_start()
+        tensor_env = self.env if isinstance(self.env, TorchVecEnv) else None
         with th.inference_mode():
             for _ in range(self.num_steps_per_env):
                 actions = self.alg.act(obs)
                 obs, rewards, dones, extras = self.rsl_env.step(actions)
                 self.alg.process_env_step(obs, rewards, dones, extras)
                 self.num_timesteps += self.n_envs
-                infos = self.rsl_env.last_infos
-                self._update_info_buffer(infos, dones.cpu().numpy().astype(bool))
+                if tensor_env is None:
+                    self._update_info_buffer(self.rsl_env.last_infos, dones.cpu().numpy().astype(bool))
                 self._last_obs = self.rsl_env.last_obs  # type: ignore[assignment]
                 callback.update_locals(locals())
                 if not callback.on_step():
                     return False
             self.alg.compute_returns(obs)
+        if tensor_env is not None:  # one host read of the rollout's finished episodes
+            self.ep_info_buffer.extend(tensor_env.pop_episodes())  # type: ignore[union-attr]
         callback.on_rollout_end()
         return True
 
@@ -357,7 +381,7 @@ class RslPPO(BaseAlgorithm):
         self.logger.dump(step=self.num_timesteps)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "alg", "rsl_env"]
+        return [*super()._excluded_save_params(), "alg", "rsl_env", "_last_obs"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "alg.optimizer"], []

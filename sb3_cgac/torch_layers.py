@@ -42,30 +42,33 @@ class RunningObsNormalizer(nn.Module):
         self.register_buffer("count", th.tensor(1e-4))
 
     @th.no_grad()
-    def update(self, obs: th.Tensor, all_reduce: AllReduce | None = None) -> None:
+    def update(self, obs: th.Tensor, valid: th.Tensor | None = None, all_reduce: AllReduce | None = None) -> None:
         """
-        Merge a batch of observations into the statistics.
+        Merge a batch of observations into the statistics, on their device (no host sync).
 
         :param obs: Observations, shape (batch, *shape)
+        :param valid: Which rows to merge (boolean, shape (batch,)); None: all
         :param all_reduce: With data-parallel training, the sum over the ranks (``DataParallel.sum``): the batch is
             then the observations of every rank, and every rank merges the same statistics
         """
         obs = obs.float()
+        weights = th.ones(len(obs), device=obs.device) if valid is None else valid.to(obs.device, th.float32)
+        weights = weights.reshape(-1, *([1] * (obs.dim() - 1)))
         if all_reduce is None:
-            batch_count = float(obs.shape[0])
-            batch_mean, batch_var = obs.mean(dim=0), obs.var(dim=0, unbiased=False)
+            batch_count = weights.sum()
+            batch_mean = (obs * weights).sum(dim=0) / batch_count.clamp_min(1.0)
+            batch_var = ((obs - batch_mean) ** 2 * weights).sum(dim=0) / batch_count.clamp_min(1.0)
         else:
             # Count, sum and sum of squares of every rank's rows, in float64 for the variance's cancellation
-            rows = obs.double().reshape(obs.shape[0], -1)
-            count = th.full((1,), float(obs.shape[0]), dtype=th.float64, device=obs.device)
+            rows = (obs.double() * weights).reshape(obs.shape[0], -1)
+            count = weights.double().sum().reshape(1)
             sums = all_reduce(th.cat([count, rows.sum(dim=0), (rows**2).sum(dim=0)]))
-            batch_count = float(sums[0].item())
-            if batch_count == 0:
-                return
             size = rows.shape[1]
-            mean64 = sums[1 : 1 + size] / batch_count
+            batch_count = sums[0].float()
+            mean64 = sums[1 : 1 + size] / sums[0].clamp_min(1.0)
             batch_mean = mean64.float().view(self.mean.shape)
-            batch_var = (sums[1 + size :] / batch_count - mean64**2).clamp_min(0.0).float().view(self.mean.shape)
+            batch_var = (sums[1 + size :] / sums[0].clamp_min(1.0) - mean64**2).clamp_min(0.0).float().view(self.mean.shape)
+        # A batch without a valid row leaves the statistics as they are (batch_count 0)
         delta = batch_mean - self.mean
         total = self.count + batch_count
         self.var.copy_((self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total)
@@ -95,10 +98,10 @@ class DictObsNormalizer(nn.Module):
         )
 
     @th.no_grad()
-    def update(self, obs: dict[str, th.Tensor], all_reduce: AllReduce | None = None) -> None:
+    def update(self, obs: dict[str, th.Tensor], valid: th.Tensor | None = None, all_reduce: AllReduce | None = None) -> None:
         for key, normalizer in self.normalizers.items():
             assert isinstance(normalizer, RunningObsNormalizer)
-            normalizer.update(obs[key], all_reduce)
+            normalizer.update(obs[key], valid, all_reduce)
 
     def forward(self, obs: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
         return {key: self.normalizers[key](value) if key in self.normalizers else value for key, value in obs.items()}

@@ -83,3 +83,25 @@ def test_update_benchmark_end_to_end():
     assert result.returncode == 0, result.stderr[-3000:]
     rows = table_rows(result.stdout, "Pendulum-v1")
     assert len(rows) == 1 and float(rows[0][2].replace(",", "")) > 0
+
+
+def test_data_parallel_table(tmp_path):
+    # benchmarks/data_parallel.py's table from two compare folders: the ratio of steps/s, and each run's return at the
+    # env steps both reached (interpolated between evaluations)
+    columns = "run,seed,steps,seconds,mean_return,mean_length\n"
+    (tmp_path / "2-ranks-1-thread").mkdir()
+    (tmp_path / "1-process-2-threads").mkdir()
+    ranks = "cgac,0,0,0,0,1000\ncgac,0,200000,50,100,1000\ncgac,0,400000,100,300,1000\n"
+    (tmp_path / "2-ranks-1-thread" / "evaluations.csv").write_text(columns + ranks)
+    single = "cgac,0,0,0,0,1000\ncgac,0,300000,100,250,1000\n"
+    (tmp_path / "1-process-2-threads" / "evaluations.csv").write_text(columns + single)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "data_parallel.py"), "--out", str(tmp_path), "--minutes", "1.6667",
+         "--table-only"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "| 0 | 2 ranks x 1 thread | 400,000 | 4,000 | 300 | 200 (300,000) |" in result.stdout
+    assert "| 0 | 1 process x 2 threads | 300,000 | 3,000 | 250 | 250 (300,000) |" in result.stdout
+    assert "steps/s ratio (ranks / one process), per seed: 1.33; mean 1.33" in result.stdout
+    assert (tmp_path / "summary.md").read_text().strip() == result.stdout.strip()

@@ -1,7 +1,8 @@
 """
 Vectorised-env backends for large numbers of parallel envs, all as Stable-Baselines3 ``VecEnv``:
-SB3's ``DummyVecEnv`` and ``SubprocVecEnv``, ``EnvPoolVecEnv`` (C++ thread pool, extra ``envpool``) and
-``GymnasiumVecEnv`` over ``gymnasium.make_vec`` (sync or async).
+SB3's ``DummyVecEnv`` and ``SubprocVecEnv``, ``EnvPoolVecEnv`` (C++ thread pool, extra ``envpool``),
+``GymnasiumVecEnv`` over ``gymnasium.make_vec`` (sync or async), and ``TorchVecEnv`` over torch-native batched
+simulators (tensors on a device, stepped by CGAC without NumPy).
 """
 
 import contextlib
@@ -11,6 +12,7 @@ from typing import Any
 
 from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv, register_envpool_task
 from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv, auto_episode_info
+from sb3_cgac.vec_env.torch_vec_env import NumpyToTorchVectorEnv, TensorStep, TorchVecEnv
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
@@ -19,7 +21,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async")
+BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async", "gymnasium_torch", "playground")
 # The entries of Monitor's episode dicts; the others are the adapters' episode_info statistics
 MONITOR_KEYS = ("r", "l", "t")
 
@@ -76,7 +78,10 @@ def make_vec_env(
     :param n_envs: Number of parallel envs
     :param backend: ``"dummy"`` (SB3 DummyVecEnv: one process), ``"subproc"`` (SB3 SubprocVecEnv: a process per
         env), ``"envpool"`` (one C++ thread pool, the fastest for MuJoCo), ``"gymnasium"`` / ``"gymnasium_async"``
-        (``gymnasium.make_vec`` in sync or async mode)
+        (``gymnasium.make_vec`` in sync or async mode), ``"gymnasium_torch"`` (the sync one seen as a torch-native
+        env, ``TorchVecEnv``: CGAC's path for GPU simulators, here on the CPU), ``"playground"`` (a MuJoCo Playground
+        task in JAX, ``PlaygroundVectorEnv`` as a ``TorchVecEnv``: extra ``playground``; ``vec_env_kwargs`` ``impl``,
+        ``episode_length``, ``config_overrides``)
     :param seed: Seed of the envs (env i gets ``seed + i``)
     :param env_kwargs: Keyword arguments of the env constructor
     :param vec_env_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool,
@@ -101,18 +106,29 @@ def make_vec_env(
             vec_env_kwargs=vec_env_kwargs,
             wrapper_class=RandomFirstEpisodeLength if random_first_episode else None,
         )
+    if backend == "playground":
+        from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv
+
+        playground = PlaygroundVectorEnv(env_id, n_envs, **vec_env_kwargs, **env_kwargs)
+        tensor_env = TorchVecEnv(playground, random_first_episode=random_first_episode)
+        if seed is not None:
+            tensor_env.seed(seed)
+        return tensor_env
     vec_env_kwargs = {**vec_env_kwargs, "random_first_episode": random_first_episode}
     if backend == "envpool":
         return EnvPoolVecEnv(env_id, n_envs, seed=seed if seed is not None else 0, **vec_env_kwargs, **env_kwargs)
-    if backend in ("gymnasium", "gymnasium_async"):
+    if backend in ("gymnasium", "gymnasium_async", "gymnasium_torch"):
         venv = gym.make_vec(
             gym.spec(env_id),  # the spec's entry point also works in async workers, where the id may not be registered
             num_envs=n_envs,
-            vectorization_mode="sync" if backend == "gymnasium" else "async",
+            vectorization_mode="async" if backend == "gymnasium_async" else "sync",
             vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
             **env_kwargs,
         )
-        vec_env = GymnasiumVecEnv(venv, **vec_env_kwargs)
+        if backend == "gymnasium_torch":
+            vec_env: VecEnv = TorchVecEnv(NumpyToTorchVectorEnv(venv), **vec_env_kwargs)
+        else:
+            vec_env = GymnasiumVecEnv(venv, **vec_env_kwargs)
         if seed is not None:
             vec_env.seed(seed)
         return vec_env
@@ -123,6 +139,9 @@ __all__ = [
     "BACKENDS",
     "EnvPoolVecEnv",
     "GymnasiumVecEnv",
+    "NumpyToTorchVectorEnv",
+    "TensorStep",
+    "TorchVecEnv",
     "auto_episode_info",
     "episode_metrics",
     "make_vec_env",

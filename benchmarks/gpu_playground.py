@@ -1,0 +1,187 @@
+"""
+CGAC end to end on a GPU simulator, measured side by side in one run: MuJoCo Playground (MJX) through
+``PlaygroundVectorEnv`` and ``TorchVecEnv``, the whole iteration on the device. ``benchmarks/gpu.sh`` runs it on a
+GPU machine; on a CPU it runs small (a check of the script, not a measurement):
+
+    python benchmarks/gpu_playground.py --task CartpoleBalance --envs 16 --learn-envs 16 --seconds 5 \
+        --learn-seconds 20 --out /tmp/gpu
+
+It writes ``table.md`` (and ``results.json``) into ``--out``:
+- raw: the simulator's steps/s with random actions, through the adapter (torch tensors in and out by DLPack), at each
+  ``--envs``;
+- cgac: CGAC's end-to-end env steps/s with its defaults for the device, at each ``--envs``, after a warm-up;
+- learning: ``--learn-seconds`` of training at ``--learn-envs`` envs of CGAC (defaults) and of rsl_rl's PPO
+  (``RslPPO``, rsl_rl's defaults: the settings of Playground's locomotion tasks), each followed by a deterministic
+  evaluation of one episode on every env; their env steps/s, and the ratio of CGAC's steps/s to the raw simulator's.
+"""
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import TorchVecEnv, make_vec_env
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+
+
+class StopAfter(BaseCallback):
+    """Stops training after ``seconds`` of wall-clock, counted from the first step."""
+
+    def __init__(self, seconds: float):
+        super().__init__()
+        self.seconds = seconds
+        self.start = 0.0
+        self.start_steps = 0
+
+    def _on_training_start(self) -> None:
+        self.start, self.start_steps = time.perf_counter(), self.num_timesteps
+
+    def _on_step(self) -> bool:
+        return time.perf_counter() - self.start < self.seconds
+
+    def rate(self) -> float:
+        return (self.num_timesteps - self.start_steps) / (time.perf_counter() - self.start)
+
+
+def synchronize() -> None:
+    if th.cuda.is_available():
+        th.cuda.synchronize()
+
+
+def playground(args: argparse.Namespace, n_envs: int, seed: int, random_first_episode: bool = True) -> TorchVecEnv:
+    kwargs = dict(seed=seed, vec_env_kwargs=args.env_kwargs, random_first_episode=random_first_episode)
+    env = make_vec_env(args.task, n_envs, backend="playground", **kwargs)  # type: ignore[arg-type]
+    assert isinstance(env, TorchVecEnv)
+    return env
+
+
+def raw_rate(args: argparse.Namespace, n_envs: int) -> float:
+    env = playground(args, n_envs, seed=0, random_first_episode=False)
+    venv, device = env.venv, env.device
+    venv.reset(seed=0)
+    action_dim = int(np.prod(env.action_space.shape))  # type: ignore[arg-type]
+    venv.step(th.zeros(n_envs, action_dim, device=device))  # compiles
+    synchronize()
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < args.seconds:
+        venv.step(th.rand(n_envs, action_dim, device=device) * 2 - 1)
+        steps += 1
+    synchronize()
+    return steps * n_envs / (time.perf_counter() - start)
+
+
+def build(algo: str, n_envs: int, args: argparse.Namespace) -> BaseAlgorithm:
+    env = playground(args, n_envs, seed=0)
+    policy = "MultiInputPolicy" if isinstance(env.observation_space, spaces.Dict) else "MlpPolicy"
+    if algo == "cgac":
+        return CGAC(policy, env, seed=0, device=args.device)
+    from sb3_cgac.rsl_rl import RslPPO
+
+    return RslPPO(policy, env, seed=0, device=args.device)
+
+
+def train_rate(model: BaseAlgorithm, seconds: float, warmup_steps: int) -> float:
+    model.learn(warmup_steps)  # compiles the simulator, fills the window, warms the kernels
+    stopper = StopAfter(seconds)
+    model.learn(10**12, callback=stopper, reset_num_timesteps=False)
+    return stopper.rate()
+
+
+def evaluate(model: BaseAlgorithm, args: argparse.Namespace, n_envs: int) -> float:
+    eval_env = playground(args, n_envs, seed=10_000, random_first_episode=False)
+    returns, _ = evaluate_policy(model, eval_env, n_eval_episodes=n_envs, deterministic=True)
+    return float(returns)  # type: ignore[arg-type]
+
+
+def machine(device: str) -> str:
+    gpu = th.cuda.get_device_name() if th.cuda.is_available() else "no GPU"
+    driver = ""
+    if th.cuda.is_available():
+        import subprocess
+
+        query = ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"]
+        driver = subprocess.run(query, capture_output=True, text=True, check=False).stdout.strip()
+    import jax
+    import mujoco
+
+    return (
+        f"{gpu} (driver {driver or '-'}), {platform.processor() or platform.machine()}; torch {th.__version__}, "
+        f"JAX {jax.__version__} ({jax.default_backend()}), MuJoCo {mujoco.__version__}, device {device}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="CheetahRun", help="a MuJoCo Playground task that needs no downloaded assets")
+    parser.add_argument("--envs", type=int, nargs="+", default=[1024, 4096, 16384])
+    parser.add_argument("--learn-envs", type=int, default=4096)
+    parser.add_argument("--seconds", type=float, default=15.0, help="timed seconds of each throughput measurement")
+    parser.add_argument("--learn-seconds", type=float, default=180.0)
+    parser.add_argument("--impl", default="jax", help="MuJoCo's JAX implementation: jax (MJX) or warp")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    args.device = "cuda" if th.cuda.is_available() else "cpu"
+    args.env_kwargs = {"impl": args.impl}
+    args.out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {"machine": machine(args.device), "task": args.task, "raw": {}, "cgac": {}, "learning": {}}
+
+    def save() -> None:
+        (args.out / "results.json").write_text(json.dumps(results, indent=1))
+
+    for n_envs in args.envs:
+        results["raw"][n_envs] = raw_rate(args, n_envs)
+        print(f"raw {n_envs}: {results['raw'][n_envs]:,.0f} steps/s", flush=True)
+        save()
+    for n_envs in args.envs:
+        if n_envs == args.learn_envs:
+            continue  # measured by the learning run below
+        model = build("cgac", n_envs, args)
+        results["cgac"][n_envs] = train_rate(model, args.seconds, warmup_steps=40 * n_envs)
+        print(f"cgac {n_envs}: {results['cgac'][n_envs]:,.0f} steps/s", flush=True)
+        save()
+        del model
+    for algo in ("cgac", "rsl_ppo"):
+        model = build(algo, args.learn_envs, args)
+        rate = train_rate(model, args.learn_seconds, warmup_steps=args.learn_envs * 40)
+        final = evaluate(model, args, args.learn_envs)
+        results["learning"][algo] = {"steps_per_s": rate, "steps": model.num_timesteps, "return": final}
+        if algo == "cgac":
+            results["cgac"][args.learn_envs] = rate
+        print(f"{algo}: {rate:,.0f} steps/s, {model.num_timesteps:,} steps, return {final:.1f}", flush=True)
+        save()
+        del model
+    (args.out / "table.md").write_text(table(results, args))
+    print(table(results, args))
+
+
+def table(results: dict[str, Any], args: argparse.Namespace) -> str:
+    lines = [f"Machine: {results['machine']}", f"Task: {results['task']} (MuJoCo Playground, impl={args.impl})", ""]
+    lines += ["| envs | raw simulator steps/s | CGAC end-to-end steps/s | CGAC / raw |", "| --- | --- | --- | --- |"]
+    for n_envs in args.envs:
+        raw, cgac = results["raw"].get(n_envs), results["cgac"].get(n_envs)
+        ratio = f"{cgac / raw:.2f}" if raw and cgac else "-"
+        lines.append(f"| {n_envs:,} | {raw or 0:,.0f} | {cgac or 0:,.0f} | {ratio} |")
+    lines += [
+        "",
+        f"Learning: {args.learn_seconds:.0f} s of training at {args.learn_envs:,} envs (after a warm-up of 40 steps per "
+        f"env), then one deterministic episode on each of {args.learn_envs:,} envs.",
+        "",
+    ]
+    lines += ["| algorithm | env steps/s | env steps | evaluation return |", "| --- | --- | --- | --- |"]
+    for algo, found in results["learning"].items():
+        lines.append(f"| {algo} | {found['steps_per_s']:,.0f} | {found['steps']:,} | {found['return']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3)
+    main()

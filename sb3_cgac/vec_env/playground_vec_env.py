@@ -1,0 +1,151 @@
+"""
+MuJoCo Playground (package ``playground``, JAX; extra ``playground``) as a torch-native vector env: the batched JAX
+state stays on JAX's device and observations, rewards and flags reach torch through DLPack without a copy (actions
+go back the same way), so that on a GPU the whole collection step stays on the GPU.
+
+    from sb3_cgac.vec_env import TorchVecEnv
+    from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv
+
+    env = TorchVecEnv(PlaygroundVectorEnv("CheetahRun", num_envs=4096, impl="jax"), random_first_episode=True)
+    CGAC("MlpPolicy", env).learn(10_000_000)
+
+Episodes follow Playground's own training wrappers (Brax's ``VmapWrapper`` and ``EpisodeWrapper``, then Playground's
+``BraxAutoResetWrapper``, which resets finished envs to a cached first state), with one difference that CGAC needs:
+the last observation of a finished episode is kept (``info["final_obs"]``) instead of being overwritten by the reset,
+and the time limit is reported as a truncation (``EpisodeWrapper``'s ``truncation``), not a termination.
+"""
+
+import functools
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode
+
+try:
+    import jax
+    import jax.numpy as jp
+    from brax.envs.wrappers import training as brax_training
+    from mujoco_playground import registry, wrapper
+except ImportError as error:  # pragma: no cover - the extra is missing
+    raise ImportError(
+        "sb3_cgac.vec_env.playground_vec_env needs MuJoCo Playground: pip install 'sb3_cgac[playground]'."
+    ) from error
+
+
+class _KeepFinalObservation(wrapper.Wrapper):
+    """Copies each step's observation into ``info["final_obs"]`` before the autoreset wrapper above replaces it."""
+
+    def reset(self, rng: jax.Array) -> Any:
+        state = self.env.reset(rng)
+        state.info["final_obs"] = state.obs
+        return state
+
+    def step(self, state: Any, action: jax.Array) -> Any:
+        state = self.env.step(state, action)
+        state.info["final_obs"] = state.obs
+        return state
+
+
+def _to_torch(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {key: _to_torch(item) for key, item in value.items()}
+    return th.from_dlpack(value)
+
+
+def _space(size: Any) -> spaces.Space:
+    if isinstance(size, dict):
+        return spaces.Dict({key: _space(item) for key, item in size.items()})
+    shape = (size,) if isinstance(size, int) else tuple(size)
+    return spaces.Box(-np.inf, np.inf, shape, np.float32)
+
+
+@functools.cache
+def _compiled(env_name: str, num_envs: int, episode_length: int, overrides: tuple[tuple[str, Any], ...]) -> tuple[Any, ...]:
+    """
+    The jitted reset, step and partial reset of ``num_envs`` copies of a task, and its observation and action sizes:
+    built once per process, so that envs of the same task and size (training and evaluation) share the compilation.
+    """
+    env = registry.load(env_name, config_overrides=dict(overrides))
+    action_repeat = int(registry.get_default_config(env_name).get("action_repeat", 1))
+    observation_size, action_size = env.observation_size, env.action_size
+    env = brax_training.EpisodeWrapper(brax_training.VmapWrapper(env), episode_length, action_repeat)
+    env = wrapper.BraxAutoResetWrapper(_KeepFinalObservation(env))
+
+    def step(state: Any, actions: jax.Array) -> tuple[Any, tuple[Any, ...]]:
+        state = env.step(state, actions)
+        truncated = state.info["truncation"] > 0  # EpisodeWrapper: the time limit, where the episode did not terminate
+        terminated = (state.done > 0) & ~truncated
+        flags = (terminated.astype(jp.uint8), truncated.astype(jp.uint8))  # DLPack's bool support varies
+        return state, (state.obs, state.reward, *flags, state.info["final_obs"])
+
+    def reset_some(state: Any, mask: jax.Array, key: jax.Array) -> Any:
+        fresh = env.reset(jax.random.split(key, num_envs))
+
+        def pick(new: jax.Array, old: jax.Array) -> jax.Array:
+            if new.ndim == 0 or new.shape[0] != num_envs:
+                return old
+            return jp.where(mask.reshape(-1, *([1] * (new.ndim - 1))), new, old)
+
+        return jax.tree_util.tree_map(pick, fresh, state)
+
+    return jax.jit(env.reset), jax.jit(step), jax.jit(reset_some), observation_size, action_size
+
+
+class PlaygroundVectorEnv(gym.vector.VectorEnv):
+    """
+    ``num_envs`` copies of a MuJoCo Playground task, stepped by one jitted JAX function, with torch tensors in and
+    out (the torch-native contract of ``TorchVecEnv``: same-step autoreset, ``info["final_obs"]``, partial resets
+    with ``reset(options={"reset_mask": mask})``).
+
+    :param env_name: A Playground task (``mujoco_playground.registry``), e.g. ``"CheetahRun"``, ``"Go1JoystickFlatTerrain"``
+    :param num_envs: Number of parallel envs
+    :param impl: MuJoCo's JAX implementation: ``"jax"`` (MJX) or ``"warp"`` (MuJoCo Warp; a GPU and ``warp-lang``)
+    :param episode_length: Time limit of the episodes (None: the task's ``episode_length``)
+    :param config_overrides: Further settings of the task's config
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(
+        self,
+        env_name: str,
+        num_envs: int,
+        impl: str = "jax",
+        episode_length: int | None = None,
+        config_overrides: dict[str, Any] | None = None,
+    ):
+        self.env_name = env_name
+        self.num_envs = num_envs
+        self.max_episode_steps = int(episode_length or registry.get_default_config(env_name).episode_length)
+        overrides = tuple(sorted({"impl": impl, **(config_overrides or {})}.items()))
+        compiled = _compiled(env_name, num_envs, self.max_episode_steps, overrides)
+        self._reset, self._step, self._reset_some, observation_size, action_size = compiled
+        self.single_observation_space = _space(observation_size)
+        self.single_action_space = spaces.Box(-1.0, 1.0, (action_size,), np.float32)
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
+        self.device = th.device("cuda" if jax.default_backend() == "gpu" else "cpu")
+        self._key = jax.random.PRNGKey(0)
+        self._state: Any = None
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        if seed is not None:
+            self._key = jax.random.PRNGKey(seed)
+        self._key, key = jax.random.split(self._key)
+        if options and "reset_mask" in options and self._state is not None:
+            mask = jax.dlpack.from_dlpack(th.as_tensor(options["reset_mask"], device=self.device).to(th.uint8)) != 0
+            self._state = self._reset_some(self._state, mask, key)
+        else:
+            self._state = self._reset(jax.random.split(key, self.num_envs))
+        return _to_torch(self._state.obs), {}
+
+    def step(self, actions: Any) -> tuple[Any, th.Tensor, th.Tensor, th.Tensor, dict[str, Any]]:
+        actions = th.as_tensor(actions, dtype=th.float32, device=self.device).clamp(-1.0, 1.0).contiguous()
+        self._state, (obs, rewards, terminated, truncated, final_obs) = self._step(
+            self._state, jax.dlpack.from_dlpack(actions)
+        )
+        info = {"final_obs": _to_torch(final_obs)}
+        return _to_torch(obs), _to_torch(rewards), _to_torch(terminated).bool(), _to_torch(truncated).bool(), info

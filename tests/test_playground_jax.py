@@ -1,0 +1,82 @@
+"""MuJoCo Playground (JAX, on the CPU here) through PlaygroundVectorEnv and TorchVecEnv: the episode contract checked
+against the task driven directly, and CGAC trained on it (a DM Control Suite port: no downloaded assets)."""
+
+import pytest
+
+jax = pytest.importorskip("jax")
+pytest.importorskip("mujoco_playground")
+
+from sb3_cgac import CGAC  # noqa: E402
+from sb3_cgac.vec_env import TorchVecEnv, make_vec_env  # noqa: E402
+from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch as th  # noqa: E402
+from brax.envs.wrappers import training as brax_training  # noqa: E402
+from mujoco_playground import registry  # noqa: E402
+
+TASK = "CartpoleBalance"
+EPISODE = 12
+
+
+def test_steps_match_the_task_driven_directly():
+    n_envs, seed = 3, 7
+    env = PlaygroundVectorEnv(TASK, n_envs, impl="jax", episode_length=EPISODE)
+    # The same task with Brax's vmap and time-limit wrappers and no autoreset, reset with the keys the adapter's
+    # autoreset wrapper hands the task
+    reference = brax_training.EpisodeWrapper(
+        brax_training.VmapWrapper(registry.load(TASK, config_overrides={"impl": "jax"})), EPISODE, 1
+    )
+    keys = jax.random.split(jax.random.split(jax.random.PRNGKey(seed))[1], n_envs)
+    state = jax.jit(reference.reset)(jax.vmap(jax.random.split)(keys)[..., 1])
+    step = jax.jit(reference.step)
+
+    obs, _ = env.reset(seed=seed)
+    first_obs = np.asarray(state.obs)
+    np.testing.assert_allclose(obs.numpy(), first_obs, atol=1e-6)
+    rng = np.random.default_rng(0)
+    for t in range(1, EPISODE + 3):
+        actions = rng.uniform(-1, 1, (n_envs, env.single_action_space.shape[0])).astype(np.float32)
+        obs, rewards, terminated, truncated, info = env.step(th.as_tensor(actions))
+        assert obs.dtype == th.float32 and terminated.dtype == th.bool and truncated.dtype == th.bool
+        if t <= EPISODE:
+            state = step(state, jax.numpy.asarray(actions))
+            np.testing.assert_allclose(rewards.numpy(), np.asarray(state.reward), atol=1e-5)
+            assert not terminated.any()  # the balance task never terminates: every end is the time limit
+            if t < EPISODE:
+                np.testing.assert_allclose(obs.numpy(), np.asarray(state.obs), atol=1e-5)
+                assert not truncated.any()
+            else:  # the time limit: a truncation, the last observation kept, the envs reset to their first state
+                assert truncated.all()
+                np.testing.assert_allclose(info["final_obs"].numpy(), np.asarray(state.obs), atol=1e-5)
+                np.testing.assert_allclose(obs.numpy(), first_obs, atol=1e-6)
+        else:
+            assert not truncated.any()  # a new episode
+
+
+def test_partial_reset_and_random_first_episode():
+    env = make_vec_env(TASK, 8, backend="playground", seed=0, vec_env_kwargs=dict(episode_length=EPISODE))
+    assert isinstance(env, TorchVecEnv) and env.max_episode_steps() == EPISODE
+    env.reset()
+    ends = th.zeros(8, dtype=th.int64)
+    for _ in range(EPISODE):
+        step = env.step_tensors(th.zeros(8, 1))
+        ends += step.truncated.long()
+    # Every env's first episode ends once within its time limit (a random cut, or the limit itself), and only
+    # the episodes that reached the limit are reported, as Monitor would
+    assert (ends == 1).all()
+    assert all(episode["l"] == EPISODE for episode in env.pop_episodes())
+
+
+def test_cgac_trains_on_playground(tmp_path):
+    env = make_vec_env(TASK, 8, backend="playground", seed=0, vec_env_kwargs=dict(episode_length=EPISODE))
+    model = CGAC("MlpPolicy", env, batch_size=64, buffer_window=8, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
+    model.learn(8 * 40)
+    assert model.num_timesteps == 8 * 40
+    lengths = [episode["l"] for episode in model.ep_info_buffer]
+    assert lengths and all(length == EPISODE for length in lengths)  # cut first episodes are not reported
+    assert model.rollout_buffer.truncated.any()
+    model.save(tmp_path / "model")
+    loaded = CGAC.load(tmp_path / "model")
+    obs = env.reset()
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
