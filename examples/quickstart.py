@@ -3,8 +3,8 @@ Quickstart: train CGAC on Pendulum-v1 with 64 parallel envs, evaluate it, save a
 
     python examples/quickstart.py [--timesteps 200000]
 
-About two minutes on 2 CPU cores; the mean evaluation return should end near -200 or above
-(a random policy scores about -1200).
+A minute or two on 2 CPU cores. A random policy scores about -1200; after 200k steps most seeds end at -260 or above
+(10 of seeds 0-11, between -147 and -257), some are still learning (seed 0: -835, seed 3: -354).
 """
 
 import argparse
