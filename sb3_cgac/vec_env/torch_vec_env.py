@@ -19,14 +19,14 @@ keeps working, and ``step_tensors`` is the path without NumPy that CGAC takes wh
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
+from sb3_cgac.buffers import TensorObs, where_rows
+
 import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
-
-TensorObs = th.Tensor | dict[str, th.Tensor]
 
 
 class TensorStep(NamedTuple):
@@ -38,18 +38,6 @@ class TensorStep(NamedTuple):
     truncated: th.Tensor  # bool: a time limit, or the random cut of a first episode (and not terminated)
     final_observations: TensorObs  # the last observation of the finished envs' episodes (other rows: arbitrary)
     infos: dict[str, Any]
-
-
-def _rows(obs: TensorObs, mask: th.Tensor, chosen: TensorObs) -> TensorObs:
-    # `chosen` where mask, else `obs`, row by row
-    def select(a: th.Tensor, b: th.Tensor) -> th.Tensor:
-        return th.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
-
-    if isinstance(obs, dict):
-        assert isinstance(chosen, dict)
-        return {key: select(chosen[key], value) for key, value in obs.items()}
-    assert isinstance(chosen, th.Tensor)
-    return select(chosen, obs)
 
 
 def _to_numpy(obs: TensorObs) -> np.ndarray | dict[str, np.ndarray]:
@@ -168,8 +156,8 @@ class TorchVecEnv(VecEnv):
                 cut = self._lengths == self._first_cut
                 self._first_cut.masked_fill_(cut, 0)
                 reset_obs, _ = self.venv.reset(options={"reset_mask": cut})
-                final = _rows(final, cut, obs)
-                obs = _rows(obs, cut, _to_tensor(reset_obs, self.device))
+                final = where_rows(cut, obs, final)
+                obs = where_rows(cut, _to_tensor(reset_obs, self.device), obs)
                 truncated, dones = truncated | cut, dones | cut
         # Like Monitor, which never sees the cut of a first episode
         self._finished.append((reported, self._returns.clone(), self._lengths.clone()))
