@@ -2,17 +2,13 @@
 Schedules of the target-entropy coefficient beta (target entropy = -beta * |A|, paper Eq. 12-13), as SB3 callbacks.
 
 They work with any algorithm that has a ``target_entropy_beta`` attribute read at every update (``CGAC``).
-Use them from Python (``model.learn(..., callback=RewardEntropySchedule(...))``), from a zoo YAML entry
-(``callback: - sb3_cgac.callbacks.RewardEntropySchedule: {beta_final: 3.5}``), or through CGAC's
-``entropy_schedule`` hyperparameter, which creates one for you.
+Use them from Python (``model.learn(..., callback=RewardEntropySchedule(...))``) or from a zoo YAML entry
+(``callback: - sb3_cgac.callbacks.RewardEntropySchedule: {beta_final: 3.5}``).
 """
-
-from typing import Any
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
-from stable_baselines3.common.type_aliases import MaybeCallback
+from stable_baselines3.common.callbacks import BaseCallback
 
 
 class EntropyScheduleCallback(BaseCallback):
@@ -135,37 +131,3 @@ class ProgressEntropySchedule(EntropyScheduleCallback):
         if not self.total_timesteps:
             return 0.0
         return self.num_timesteps / self.total_timesteps / self.end_fraction
-
-
-# The schedules that CGAC's ``entropy_schedule`` hyperparameter names
-ENTROPY_SCHEDULES: dict[str, type[EntropyScheduleCallback]] = {
-    "reward": RewardEntropySchedule,
-    "progress": ProgressEntropySchedule,
-}
-
-
-def contains_entropy_schedule(callback: BaseCallback) -> bool:
-    """Whether ``callback`` is, or (in a ``CallbackList``) holds, an entropy schedule."""
-    if isinstance(callback, EntropyScheduleCallback):
-        return True
-    if isinstance(callback, CallbackList):
-        return any(contains_entropy_schedule(child) for child in callback.callbacks)
-    return False
-
-
-def with_entropy_schedule(callback: MaybeCallback, schedule: EntropyScheduleCallback, name: str) -> list[BaseCallback]:
-    """
-    The callbacks of ``learn()`` with the schedule of the ``entropy_schedule`` hyperparameter first.
-
-    :param callback: The user's callbacks, as ``learn()`` takes them
-    :param schedule: The schedule the model created from its hyperparameters
-    :param name: Its name, for the error when the user passes a schedule too
-    """
-    given: list[Any] = [] if callback is None else list(callback) if isinstance(callback, list) else [callback]
-    callbacks = [cb if isinstance(cb, BaseCallback) else ConvertCallback(cb) for cb in given]
-    if any(contains_entropy_schedule(cb) for cb in callbacks):
-        raise ValueError(
-            f"CGAC: the entropy schedule is given twice, by entropy_schedule={name!r} and by a callback. Keep one: "
-            "set entropy_schedule=None or remove the schedule callback."
-        )
-    return [schedule, *callbacks]

@@ -1,15 +1,7 @@
 from typing import Any, ClassVar, TypeVar
 
-from sb3_cgac.buffers import (
-    CGACRolloutBuffer,
-    bootstrap_observations,
-    obs_to_device,
-    observations_to_tensor,
-    samples_from_tensors,
-    samples_to_tensors,
-    sanitize_tensor_observations,
-    split_episode_ends,
-)
+from sb3_cgac.buffers import CGACRolloutBuffer, samples_from_tensors, samples_to_tensors
+from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
 from sb3_cgac.compat import upgrade_saved_attributes
 from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
 from sb3_cgac.distributed import RANK_SEED_STRIDE, DataParallel, world
@@ -19,9 +11,7 @@ from sb3_cgac.hyperparameters import (
     check_batch_fits,
     check_hyperparameters,
     parse_ent_coef,
-    resolve_batch_size,
-    resolve_critic_updates_per_step,
-    resolve_polyak_rates,
+    resolve_auto_hyperparameters,
     resolve_update_precision,
     warn_few_envs,
 )
@@ -219,7 +209,7 @@ class CGAC(OnPolicyAlgorithm):
         upgrade_saved_attributes(self.__dict__)  # a model loaded from an sb3_cgac 0.1.0 file
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
-        self._resolve_auto_hyperparameters()
+        resolve_auto_hyperparameters(self)  # "auto" becomes the number for this device and env count
 
         buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
         self.rollout_buffer = buffer_class(
@@ -262,16 +252,6 @@ class CGAC(OnPolicyAlgorithm):
         # Under torch.distributed each rank gets its own seed: its own envs and minibatches
         super().set_random_seed(None if seed is None else seed + world()[0] * RANK_SEED_STRIDE)
 
-    def _resolve_auto_hyperparameters(self) -> None:
-        # "auto" becomes the number for this device and env count; loaded models keep the numbers they were saved with
-        self.batch_size = resolve_batch_size(self.batch_size, self.buffer_window, self.n_envs, self.device)
-        self.critic_updates_per_step = resolve_critic_updates_per_step(
-            self.critic_updates_per_step, self.n_envs, self.batch_size, self.device
-        )
-        self.tau, self.policy_tau = resolve_polyak_rates(
-            self.tau, self.policy_tau, self.n_envs, self.policy_delay, self.critic_updates_per_step, self.device
-        )
-
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
         self.actor_avg = self.policy.actor_avg
@@ -289,7 +269,7 @@ class CGAC(OnPolicyAlgorithm):
         # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
         # set_env, load): start a new window from `_last_obs`.
         if tensor_env is not None:
-            obs, ok = sanitize_tensor_observations(obs_to_device(tensor_env.last_observations, self.device))
+            obs, ok = tensor_observations(tensor_env.last_observations, self.device)
         else:
             obs, ok = observations_to_tensor(self._last_obs, self.device)  # type: ignore[assignment]
         buffer.reset()
@@ -299,28 +279,22 @@ class CGAC(OnPolicyAlgorithm):
             self._pending_actions = self.actor_avg.sample(obs, 1)[0]
         self._rollout_obs = self._last_obs
 
-    def _step_numpy(self, env: VecEnv, actions: th.Tensor) -> tuple[Any, ...]:
-        """One step of an SB3 VecEnv: NumPy actions out, observations and flags back (SB3's episode contract)."""
+    def _step_env(self, env: VecEnv, actions: th.Tensor) -> tuple[Any, EnvStep]:
+        """One step of every env; returns what ``_last_obs`` becomes and the step as the window stores it."""
+        if isinstance(env, TorchVecEnv):  # tensors on the device throughout, no host sync
+            tensor_step = env.step_tensors(self.policy.unscale_action_tensor(actions))
+            return tensor_step.observations, tensor_env_step(tensor_step, self.device)
         new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
-        terminated, truncated, terminal = split_episode_ends(dones, infos, self.device)
-        all_truncated = terminal is not None and len(terminal.env_indices) == env.num_envs >= FEW_ENVS
+        step = vec_env_step(new_obs, rewards, dones, infos, self.device)
+        all_truncated = step.terminal is not None and len(step.terminal[0]) == env.num_envs >= FEW_ENVS
         if all_truncated and not self._warned_synchronised_resets:
             self._warned_synchronised_resets = True
             warn_synchronised_resets()
         if dones.any():  # episode statistics only come with finished episodes
             done_idx = np.flatnonzero(dones)
             self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
-        obs, obs_ok = observations_to_tensor(new_obs, self.device)
-        return new_obs, obs, obs_ok, rewards, dones, infos, terminated, truncated, terminal
-
-    def _step_tensors(self, env: TorchVecEnv, actions: th.Tensor) -> tuple[Any, ...]:
-        """One step of a torch-native env: tensors on the device throughout, no host sync."""
-        step = env.step_tensors(self.policy.unscale_action_tensor(actions))
-        obs, obs_ok = sanitize_tensor_observations(obs_to_device(step.observations, self.device))
-        final, final_ok = sanitize_tensor_observations(obs_to_device(step.final_observations, self.device))
-        terminated, truncated = step.terminated.to(self.device), step.truncated.to(self.device)
-        dones, terminal = terminated | truncated, (final, final_ok)
-        return step.observations, obs, obs_ok, step.rewards.to(self.device), dones, step.infos, terminated, truncated, terminal
+        self._last_episode_starts = dones
+        return new_obs, step
 
     def collect_rollouts(  # type: ignore[override]
         self,
@@ -349,21 +323,21 @@ class CGAC(OnPolicyAlgorithm):
 
         for _ in range(n_rollout_steps):
             actions = self._pending_actions
-            step = self._step_tensors(tensor_env, actions) if tensor_env is not None else self._step_numpy(env, actions)
-            new_obs, obs_tensor, obs_ok, rewards, dones, infos, terminated, truncated, terminal = step
+            new_obs, step = self._step_env(env, actions)
+            rewards, dones, infos = step.rewards, step.dones, step.infos  # SB3's names, for the callbacks' locals
             self.num_timesteps += env.num_envs
-            self.policy.update_obs_normalizer(obs_tensor, obs_ok, self._parallel.sum if self._parallel else None)
+            self.policy.update_obs_normalizer(step.observations, step.obs_ok, self._parallel.sum if self._parallel else None)
             with th.inference_mode():
                 # The action of the next step at s_{t+1}, and the "next action" a'_{t+1} of this transition for its
                 # value target (at the terminal observation of a truncated episode)
-                next_step_actions = self.actor_avg.sample(obs_tensor, 1)[0]
-                next_actions = self.actor_avg.sample(bootstrap_observations(obs_tensor, truncated, terminal), 1)[0]
+                next_step_actions = self.actor_avg.sample(step.observations, 1)[0]
+                next_actions = self.actor_avg.sample(step.bootstrap_observations(), 1)[0]
 
-            rollout_buffer.add(actions, rewards, terminated, truncated, obs_tensor, obs_ok, next_actions, terminal)
+            rollout_buffer.add(
+                actions, rewards, step.terminated, step.truncated, step.observations, step.obs_ok, next_actions, step.terminal
+            )
             self._last_obs = self._rollout_obs = new_obs
             self._pending_actions = next_step_actions
-            if tensor_env is None:
-                self._last_episode_starts = dones
 
             callback.update_locals(locals())
             keep_going = callback.on_step()

@@ -224,6 +224,20 @@ def resolve_polyak_rates(
     return resolve(tau, CPU_TAU, PAPER_TAU), resolve(policy_tau, CPU_POLICY_TAU, PAPER_POLICY_TAU)
 
 
+def resolve_auto_hyperparameters(model: Any) -> None:
+    """
+    Replace the ``"auto"`` values of a ``CGAC`` model by the numbers for its device and env count, in place (a loaded
+    model keeps the numbers it was saved with): ``batch_size``, ``critic_updates_per_step``, ``tau``, ``policy_tau``.
+    """
+    model.batch_size = resolve_batch_size(model.batch_size, model.buffer_window, model.n_envs, model.device)
+    model.critic_updates_per_step = resolve_critic_updates_per_step(
+        model.critic_updates_per_step, model.n_envs, model.batch_size, model.device
+    )
+    model.tau, model.policy_tau = resolve_polyak_rates(
+        model.tau, model.policy_tau, model.n_envs, model.policy_delay, model.critic_updates_per_step, model.device
+    )
+
+
 def native_bfloat16(device: th.device) -> bool:
     """
     Whether ``device`` is a CPU that multiplies bfloat16 matrices in hardware (AVX512-BF16 or AMX). Other CPUs

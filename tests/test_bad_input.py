@@ -1,6 +1,6 @@
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import OBS_ABS_LIMIT, sanitize_observations
 from sb3_cgac.callbacks import ProgressEntropySchedule
+from sb3_cgac.collection import OBS_ABS_LIMIT, sanitize_observations
 from sb3_cgac.policies import CGACPolicy
 
 import gymnasium as gym

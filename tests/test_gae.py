@@ -1,5 +1,6 @@
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import CGACRolloutBuffer, TerminalObservations, split_episode_ends
+from sb3_cgac.buffers import CGACRolloutBuffer
+from sb3_cgac.collection import TerminalObservations, split_episode_ends
 
 import gymnasium as gym
 import numpy as np

@@ -5,7 +5,7 @@ import subprocess
 import sys
 
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import split_episode_ends
+from sb3_cgac.collection import split_episode_ends
 from sb3_cgac.vec_env import EnvPoolVecEnv, episode_metrics
 
 import numpy as np

@@ -42,6 +42,11 @@ def test_steps_match_the_task_driven_directly():
         if t <= EPISODE:
             state = step(state, jax.numpy.asarray(actions))
             np.testing.assert_allclose(rewards.numpy(), np.asarray(state.reward), atol=1e-5)
+            # The task's reward terms, named as envpool's ports name them
+            components = {key[len("reward/") :]: value for key, value in state.metrics.items() if key.startswith("reward/")}
+            assert components and {f"reward_{key}" for key in components} <= info.keys()
+            for key, value in components.items():
+                np.testing.assert_allclose(info[f"reward_{key}"].numpy(), np.asarray(value), atol=1e-5)
             assert not terminated.any()  # the balance task never terminates: every end is the time limit
             if t < EPISODE:
                 np.testing.assert_allclose(obs.numpy(), np.asarray(state.obs), atol=1e-5)
@@ -75,6 +80,8 @@ def test_cgac_trains_on_playground(tmp_path):
     assert model.num_timesteps == 8 * 40
     lengths = [episode["l"] for episode in model.ep_info_buffer]
     assert lengths and all(length == EPISODE for length in lengths)  # cut first episodes are not reported
+    # Each episode's sums of the reward terms (CartpoleBalance's upright term is in [0, 1] at every step)
+    assert all(0 < episode["reward_upright"] <= EPISODE for episode in model.ep_info_buffer)
     assert model.rollout_buffer.truncated.any()
     model.save(tmp_path / "model")
     loaded = CGAC.load(tmp_path / "model")

@@ -38,7 +38,10 @@ class ReachEnv(gym.Env):
         self.position = (self.position + 0.3 * np.asarray(action, np.float32)).astype(np.float32)
         self.steps += 1
         terminated = bool(np.abs(self.position).max() > 1.5)
-        return self._obs(), -float(np.sum(self.position**2)), terminated, self.steps >= 25, {}
+        reward = -float(np.sum(self.position**2))
+        # Reward components, reported at every step (not at a reset): summed into the episode statistics
+        info = {"reward_distance": reward, "reward_steps": float(self.steps)}
+        return self._obs(), reward, terminated, self.steps >= 25, info
 
 
 def reach_envs(kind: str, n_envs: int = 6, dict_obs: bool = False, seed: int = 0):
@@ -94,9 +97,15 @@ def test_contract_matches_gymnasium_vec_env(dict_obs):
                 assert_obs_equal(infos[idx]["terminal_observation"], rows(to_numpy(step.final_observations), idx))
                 assert infos[idx]["episode"]["r"] == pytest.approx(t_infos[idx]["episode"]["r"], rel=1e-6)
                 assert infos[idx]["episode"]["l"] == t_infos[idx]["episode"]["l"]
+                for key in ("reward_distance", "reward_steps"):  # the last step's, from final_info, counted
+                    assert t_infos[idx]["episode"][key] == pytest.approx(infos[idx]["episode"][key], rel=1e-6)
+                length = infos[idx]["episode"]["l"]
+                assert t_infos[idx]["episode"]["reward_steps"] == length * (length + 1) / 2
+                assert t_infos[idx]["episode"]["reward_distance"] == pytest.approx(t_infos[idx]["episode"]["r"], rel=1e-5)
     assert ends["terminated"] > 0 and ends["truncated"] > 0  # both kinds of ends were checked
     episodes = tensor_env.pop_episodes()
     assert len(episodes) == sum(ends.values()) and tensor_env.pop_episodes() == []
+    assert all(episode["reward_steps"] == episode["l"] * (episode["l"] + 1) / 2 for episode in episodes)
 
 
 def test_random_first_episode_cuts_as_gymnasium_vec_env():

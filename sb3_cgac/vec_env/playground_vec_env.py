@@ -12,7 +12,9 @@ go back the same way), so that on a GPU the whole collection step stays on the G
 Episodes follow Playground's own training wrappers (Brax's ``VmapWrapper`` and ``EpisodeWrapper``, then Playground's
 ``BraxAutoResetWrapper``, which resets finished envs to a cached first state), with one difference that CGAC needs:
 the last observation of a finished episode is kept (``info["final_obs"]``) instead of being overwritten by the reset,
-and the time limit is reported as a truncation (``EpisodeWrapper``'s ``truncation``), not a termination.
+and the time limit is reported as a truncation (``EpisodeWrapper``'s ``truncation``), not a termination. The task's
+reward terms (its ``reward/<name>`` metrics) come as ``info["reward_<name>"]``, as envpool's ports of the tasks name
+them, and reach the episode statistics.
 """
 
 import functools
@@ -79,7 +81,11 @@ def _compiled(env_name: str, num_envs: int, episode_length: int, overrides: tupl
         truncated = state.info["truncation"] > 0  # EpisodeWrapper: the time limit, where the episode did not terminate
         terminated = (state.done > 0) & ~truncated
         flags = (terminated.astype(jp.uint8), truncated.astype(jp.uint8))  # DLPack's bool support varies
-        return state, (state.obs, state.reward, *flags, state.info["final_obs"])
+        # The task's reward terms of this step (the autoreset leaves metrics alone), named as envpool's ports name them
+        components = {
+            f"reward_{key[len('reward/') :]}": value for key, value in state.metrics.items() if key.startswith("reward/")
+        }
+        return state, (state.obs, state.reward, *flags, state.info["final_obs"], components)
 
     def reset_some(state: Any, mask: jax.Array, key: jax.Array) -> Any:
         fresh = env.reset(jax.random.split(key, num_envs))
@@ -144,8 +150,8 @@ class PlaygroundVectorEnv(gym.vector.VectorEnv):
 
     def step(self, actions: Any) -> tuple[Any, th.Tensor, th.Tensor, th.Tensor, dict[str, Any]]:
         actions = th.as_tensor(actions, dtype=th.float32, device=self.device).clamp(-1.0, 1.0).contiguous()
-        self._state, (obs, rewards, terminated, truncated, final_obs) = self._step(
+        self._state, (obs, rewards, terminated, truncated, final_obs, components) = self._step(
             self._state, jax.dlpack.from_dlpack(actions)
         )
-        info = {"final_obs": _to_torch(final_obs)}
+        info = {"final_obs": _to_torch(final_obs), **_to_torch(components)}
         return _to_torch(obs), _to_torch(rewards), _to_torch(terminated).bool(), _to_torch(truncated).bool(), info

@@ -6,7 +6,9 @@ The contract is gymnasium's vector API with torch tensors: a ``gymnasium.vector.
 takes an action tensor and returns ``(obs, rewards, terminated, truncated, info)`` as tensors (a Dict observation as
 a dict of tensors), with same-step autoreset (``metadata["autoreset_mode"] = AutoresetMode.SAME_STEP``): a finished
 env is reset within the step, ``obs`` holds its first observation and ``info["final_obs"]`` the last one, batched
-like ``obs`` (the rows of the envs that did not finish are not read). It is the one of the common interfaces that
+like ``obs`` (the rows of the envs that did not finish are not read). Info entries ``reward_*`` with one number per
+env (reward components; a finished env's from its last step) are summed over each episode into its statistics. It is
+the one of the common interfaces that
 tells time limits from terminations *and* keeps the real last observation, which CGAC's value targets bootstrap from
 at a time limit (paper Sec. 4.1); rsl_rl's ``VecEnv`` and Isaac Lab's envs report time-outs without it. Gymnasium's own
 ``NumpyToTorch`` wrapper cannot carry same-step autoreset's ``final_obs`` (a NumPy object array); ``NumpyToTorchVectorEnv``
@@ -19,7 +21,7 @@ keeps working, and ``step_tensors`` is the path without NumPy that CGAC takes wh
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
-from sb3_cgac.buffers import TensorObs, where_rows
+from sb3_cgac.collection import TensorObs, where_rows
 
 import gymnasium as gym
 import numpy as np
@@ -38,6 +40,17 @@ class TensorStep(NamedTuple):
     truncated: th.Tensor  # bool: a time limit, or the random cut of a first episode (and not terminated)
     final_observations: TensorObs  # the last observation of the finished envs' episodes (other rows: arbitrary)
     infos: dict[str, Any]
+
+
+def reward_components(info: dict[str, Any], num_envs: int) -> list[str]:
+    """The info entries that a torch-native env's episode statistics sum: ``reward_*``, one number per env."""
+    return [key for key, value in info.items() if key.startswith("reward_") and _per_env_numbers(value, num_envs)]
+
+
+def _per_env_numbers(value: Any, num_envs: int) -> bool:
+    if isinstance(value, th.Tensor):
+        return tuple(value.shape) == (num_envs,)
+    return isinstance(value, np.ndarray) and value.shape == (num_envs,) and np.issubdtype(value.dtype, np.number)
 
 
 def _to_numpy(obs: TensorObs) -> np.ndarray | dict[str, np.ndarray]:
@@ -98,7 +111,9 @@ class TorchVecEnv(VecEnv):
         self._first_cut = th.zeros(self.num_envs, dtype=th.int64, device=self.device)
         self._cut_steps: set[int] = set()  # steps since the reset at which some first episode may be cut
         self._steps_since_reset = 0
-        self._finished: list[tuple[th.Tensor, th.Tensor, th.Tensor]] = []
+        # Reward components summed over the running episodes (chosen at the first step: ``reward_components``)
+        self._component_sums: dict[str, th.Tensor] | None = None
+        self._finished: list[tuple[th.Tensor, th.Tensor, th.Tensor, dict[str, th.Tensor]]] = []
 
     @property
     def last_observations(self) -> TensorObs:
@@ -129,6 +144,7 @@ class TorchVecEnv(VecEnv):
         self._last_obs = _to_tensor(obs, self.device)
         self._returns.zero_()
         self._lengths.zero_()
+        self._component_sums = None
         self._finished = []
         self._steps_since_reset = 0
         if self.random_first_episode:
@@ -149,6 +165,12 @@ class TorchVecEnv(VecEnv):
         self._steps_since_reset += 1
         self._returns += rewards
         self._lengths += 1
+        if self._component_sums is None:
+            zeros = th.zeros(self.num_envs, dtype=th.float64, device=self.device)
+            self._component_sums = {key: zeros.clone() for key in reward_components(info, self.num_envs)}
+        for key, sums in self._component_sums.items():
+            if key in info:
+                sums += _to_tensor(info[key], self.device, th.float64)
         reported = dones
         if self.random_first_episode:
             self._first_cut.masked_fill_(dones, 0)  # first episodes that end on their own are over
@@ -160,21 +182,36 @@ class TorchVecEnv(VecEnv):
                 obs = where_rows(cut, _to_tensor(reset_obs, self.device), obs)
                 truncated, dones = truncated | cut, dones | cut
         # Like Monitor, which never sees the cut of a first episode
-        self._finished.append((reported, self._returns.clone(), self._lengths.clone()))
+        components = {key: sums.clone() for key, sums in self._component_sums.items()}
+        self._finished.append((reported, self._returns.clone(), self._lengths.clone(), components))
         self._returns.masked_fill_(dones, 0)
         self._lengths.masked_fill_(dones, 0)
+        for sums in self._component_sums.values():
+            sums.masked_fill_(dones, 0)
         self._last_obs = obs
         return TensorStep(obs, rewards, terminated, truncated, final, info)
 
     def pop_episodes(self) -> list[dict[str, float]]:
-        """The episodes finished since the last call, as Monitor reports them (``r``, ``l``): one host read."""
+        """
+        The episodes finished since the last call, as Monitor reports them (``r``, ``l``), with their reward
+        components' sums: one host read.
+        """
         if not self._finished:
             return []
-        done, returns, lengths = (th.stack(parts) for parts in zip(*self._finished, strict=True))
+        keys = list(self._finished[0][3])
+        rows = [
+            th.stack([done.double(), returns, lengths.double(), *(comps[key] for key in keys)])
+            for done, returns, lengths, comps in self._finished
+        ]
         self._finished = []
-        done_np = done.cpu().numpy()
-        returns_np, lengths_np = returns.cpu().numpy()[done_np], lengths.cpu().numpy()[done_np]
-        return [{"r": float(r), "l": int(n)} for r, n in zip(returns_np, lengths_np, strict=True)]
+        table = th.stack(rows).cpu().numpy()  # (steps, 3 + components, envs)
+        finished = table[:, 0] > 0
+        episodes = []
+        for values in np.moveaxis(table, 1, -1)[finished]:  # one row per finished episode, in step and env order
+            episodes.append(
+                {"r": float(values[1]), "l": int(values[2]), **dict(zip(keys, map(float, values[3:]), strict=True))}
+            )
+        return episodes
 
     # SB3's NumPy API
 
@@ -187,7 +224,9 @@ class TorchVecEnv(VecEnv):
     def step_wait(self) -> VecEnvStepReturn:
         assert self._actions is not None
         step = self.step_tensors(th.as_tensor(self._actions, dtype=th.float32))
-        reported, returns, lengths = (part.cpu().numpy() for part in self._finished.pop())
+        *parts, components = self._finished.pop()
+        reported, returns, lengths = (part.cpu().numpy() for part in parts)
+        component_values = {key: value.cpu().numpy() for key, value in components.items()}
         dones = (step.terminated | step.truncated).cpu().numpy()
         truncated = step.truncated.cpu().numpy()
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
@@ -198,7 +237,8 @@ class TorchVecEnv(VecEnv):
             )
             infos[idx]["TimeLimit.truncated"] = bool(truncated[idx])
         for idx in np.flatnonzero(reported):  # the envs whose episode Monitor would report
-            infos[idx]["episode"] = {"r": float(returns[idx]), "l": int(lengths[idx])}
+            sums = {key: float(value[idx]) for key, value in component_values.items()}
+            infos[idx]["episode"] = {"r": float(returns[idx]), "l": int(lengths[idx]), **sums}
         return _to_numpy(step.observations), step.rewards.cpu().numpy(), dones, infos
 
     def close(self) -> None:
@@ -269,6 +309,7 @@ class NumpyToTorchVectorEnv(gym.vector.VectorWrapper):
                 rows = np.array(obs)
                 rows[mask] = np.stack([final[idx] for idx in np.flatnonzero(mask)])
                 info = {**info, "final_obs": _to_tensor(rows, self.device)}
+        info = {**info, **self._reward_components(info, np.asarray(terminated) | np.asarray(truncated))}
         self._obs = _to_tensor(obs, self.device)
         return (
             self._obs,
@@ -277,3 +318,15 @@ class NumpyToTorchVectorEnv(gym.vector.VectorWrapper):
             _to_tensor(truncated, self.device),
             info,
         )
+
+    def _reward_components(self, info: dict[str, Any], finished: np.ndarray) -> dict[str, th.Tensor]:
+        # Same-step autoreset gives a finished env its reset's infos: its last step's components are in final_info
+        final_info = info.get("final_info", {})
+        keys = dict.fromkeys([*reward_components(info, self.num_envs), *reward_components(final_info, self.num_envs)])
+        components = {}
+        for key in keys:
+            values = np.asarray(info.get(key, np.zeros(self.num_envs)), dtype=np.float64)
+            if key in final_info:
+                values = np.where(finished, np.asarray(final_info[key], dtype=np.float64), values)
+            components[key] = _to_tensor(values, self.device)
+        return components
