@@ -57,6 +57,7 @@ def test_steps_match_the_task_driven_directly():
                 np.testing.assert_allclose(obs.numpy(), first_obs, atol=1e-6)
         else:
             assert not truncated.any()  # a new episode
+    assert env._step._cache_size() == 1  # the jitted step compiled once: the reset's state is committed like the step's
 
 
 def test_partial_reset_and_random_first_episode():

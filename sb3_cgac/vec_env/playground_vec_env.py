@@ -145,7 +145,9 @@ class PlaygroundVectorEnv(gym.vector.VectorEnv):
             mask = jax.dlpack.from_dlpack(th.as_tensor(options["reset_mask"], device=self.device).to(th.uint8)) != 0
             self._state = self._reset_some(self._state, mask, key)
         else:
-            self._state = self._reset(jax.random.split(key, self.num_envs))
+            # Committed to the device like the step's outputs (whose actions come through DLPack): the jitted step
+            # then compiles once, not again at its second call
+            self._state = jax.device_put(self._reset(jax.random.split(key, self.num_envs)), jax.devices()[0])
         return _to_torch(self._state.obs), {}
 
     def step(self, actions: Any) -> tuple[Any, th.Tensor, th.Tensor, th.Tensor, dict[str, Any]]:
