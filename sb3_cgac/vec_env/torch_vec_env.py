@@ -8,10 +8,10 @@ a dict of tensors), with same-step autoreset (``metadata["autoreset_mode"] = Aut
 env is reset within the step, ``obs`` holds its first observation and ``info["final_obs"]`` the last one, batched
 like ``obs`` (the rows of the envs that did not finish are not read). Info entries ``reward_*`` with one number per
 env (reward components; a finished env's from its last step) are summed over each episode into its statistics. It is
-the one of the common interfaces that
-tells time limits from terminations *and* keeps the real last observation, which CGAC's value targets bootstrap from
-at a time limit (paper Sec. 4.1); rsl_rl's ``VecEnv`` and Isaac Lab's envs report time-outs without it. Gymnasium's own
-``NumpyToTorch`` wrapper cannot carry same-step autoreset's ``final_obs`` (a NumPy object array); ``NumpyToTorchVectorEnv``
+the one of the common interfaces that tells time limits from terminations *and* keeps the real last observation,
+which CGAC's value targets bootstrap from at a time limit (paper Sec. 4.1); rsl_rl's ``VecEnv`` and Isaac Lab's envs
+report time-outs without it. Gymnasium's own ``NumpyToTorch`` wrapper cannot carry same-step autoreset's ``final_obs``
+(a NumPy object array); ``NumpyToTorchVectorEnv``
 below does, so that any gymnasium vector env can take this path (on a CPU it mainly serves as a reference).
 
 ``TorchVecEnv`` makes such an env an SB3 ``VecEnv``: SB3's NumPy API (evaluation, SB3's algorithms, ``VecNormalize``)
@@ -111,9 +111,11 @@ class TorchVecEnv(VecEnv):
         self._first_cut = th.zeros(self.num_envs, dtype=th.int64, device=self.device)
         self._cut_steps: set[int] = set()  # steps since the reset at which some first episode may be cut
         self._steps_since_reset = 0
-        # Reward components summed over the running episodes (chosen at the first step: ``reward_components``)
-        self._component_sums: dict[str, th.Tensor] | None = None
-        self._finished: list[tuple[th.Tensor, th.Tensor, th.Tensor, dict[str, th.Tensor]]] = []
+        # Reward components (chosen at the first step: ``reward_components``), summed over the running episodes
+        self._component_keys: list[str] | None = None
+        self._component_sums = th.zeros((0, self.num_envs), dtype=th.float64, device=self.device)
+        # Per step: finished (as Monitor reports), returns, lengths and component sums, one (3 + components, envs) tensor
+        self._finished: list[th.Tensor] = []
 
     @property
     def last_observations(self) -> TensorObs:
@@ -144,7 +146,7 @@ class TorchVecEnv(VecEnv):
         self._last_obs = _to_tensor(obs, self.device)
         self._returns.zero_()
         self._lengths.zero_()
-        self._component_sums = None
+        self._component_keys = None
         self._finished = []
         self._steps_since_reset = 0
         if self.random_first_episode:
@@ -165,12 +167,11 @@ class TorchVecEnv(VecEnv):
         self._steps_since_reset += 1
         self._returns += rewards
         self._lengths += 1
-        if self._component_sums is None:
-            zeros = th.zeros(self.num_envs, dtype=th.float64, device=self.device)
-            self._component_sums = {key: zeros.clone() for key in reward_components(info, self.num_envs)}
-        for key, sums in self._component_sums.items():
-            if key in info:
-                sums += _to_tensor(info[key], self.device, th.float64)
+        if self._component_keys is None:
+            self._component_keys = reward_components(info, self.num_envs)
+            self._component_sums = self._returns.new_zeros((len(self._component_keys), self.num_envs))
+        if self._component_keys:
+            self._component_sums += th.stack([self._info_numbers(info, key) for key in self._component_keys])
         reported = dones
         if self.random_first_episode:
             self._first_cut.masked_fill_(dones, 0)  # first episodes that end on their own are over
@@ -182,12 +183,11 @@ class TorchVecEnv(VecEnv):
                 obs = where_rows(cut, _to_tensor(reset_obs, self.device), obs)
                 truncated, dones = truncated | cut, dones | cut
         # Like Monitor, which never sees the cut of a first episode
-        components = {key: sums.clone() for key, sums in self._component_sums.items()}
-        self._finished.append((reported, self._returns.clone(), self._lengths.clone(), components))
+        episode = th.stack([reported.double(), self._returns, self._lengths.double()])
+        self._finished.append(th.cat([episode, self._component_sums]))
         self._returns.masked_fill_(dones, 0)
         self._lengths.masked_fill_(dones, 0)
-        for sums in self._component_sums.values():
-            sums.masked_fill_(dones, 0)
+        self._component_sums.masked_fill_(dones, 0)
         self._last_obs = obs
         return TensorStep(obs, rewards, terminated, truncated, final, info)
 
@@ -198,20 +198,20 @@ class TorchVecEnv(VecEnv):
         """
         if not self._finished:
             return []
-        keys = list(self._finished[0][3])
-        rows = [
-            th.stack([done.double(), returns, lengths.double(), *(comps[key] for key in keys)])
-            for done, returns, lengths, comps in self._finished
-        ]
+        table = th.stack(self._finished).cpu().numpy()  # (steps, 3 + components, envs)
         self._finished = []
-        table = th.stack(rows).cpu().numpy()  # (steps, 3 + components, envs)
-        finished = table[:, 0] > 0
-        episodes = []
-        for values in np.moveaxis(table, 1, -1)[finished]:  # one row per finished episode, in step and env order
-            episodes.append(
-                {"r": float(values[1]), "l": int(values[2]), **dict(zip(keys, map(float, values[3:]), strict=True))}
-            )
-        return episodes
+        rows = np.moveaxis(table, 1, -1)[table[:, 0] > 0]  # one row per finished episode, in step and env order
+        return [self._episode(row) for row in rows]
+
+    def _episode(self, row: np.ndarray) -> dict[str, float]:
+        # A row of the table of _finished: (finished, return, length, component sums...)
+        sums = dict(zip(self._component_keys or [], map(float, row[3:]), strict=True))
+        return {"r": float(row[1]), "l": int(row[2]), **sums}
+
+    def _info_numbers(self, info: dict[str, Any], key: str) -> th.Tensor:
+        if key not in info:  # not reported at this step
+            return self._returns.new_zeros(self.num_envs)
+        return _to_tensor(info[key], self.device, th.float64)
 
     # SB3's NumPy API
 
@@ -224,9 +224,7 @@ class TorchVecEnv(VecEnv):
     def step_wait(self) -> VecEnvStepReturn:
         assert self._actions is not None
         step = self.step_tensors(th.as_tensor(self._actions, dtype=th.float32))
-        *parts, components = self._finished.pop()
-        reported, returns, lengths = (part.cpu().numpy() for part in parts)
-        component_values = {key: value.cpu().numpy() for key, value in components.items()}
+        table = self._finished.pop().cpu().numpy().T  # (envs, 3 + components)
         dones = (step.terminated | step.truncated).cpu().numpy()
         truncated = step.truncated.cpu().numpy()
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
@@ -236,9 +234,8 @@ class TorchVecEnv(VecEnv):
                 {key: value[idx] for key, value in final.items()} if isinstance(final, dict) else final[idx]
             )
             infos[idx]["TimeLimit.truncated"] = bool(truncated[idx])
-        for idx in np.flatnonzero(reported):  # the envs whose episode Monitor would report
-            sums = {key: float(value[idx]) for key, value in component_values.items()}
-            infos[idx]["episode"] = {"r": float(returns[idx]), "l": int(lengths[idx]), **sums}
+        for idx in np.flatnonzero(table[:, 0] > 0):  # the envs whose episode Monitor would report
+            infos[idx]["episode"] = self._episode(table[idx])
         return _to_numpy(step.observations), step.rewards.cpu().numpy(), dones, infos
 
     def close(self) -> None:
