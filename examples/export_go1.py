@@ -33,10 +33,7 @@ def main() -> None:
     args = parser.parse_args()
 
     env = make_vec_env(ENV_ID, n_envs=args.n_envs, backend="envpool", seed=args.seed)
-    # The entry's policy: actor on the robot's "state", critics on "privileged_state", near-zero initial actions
-    asymmetric = dict(
-        actor_keys=["state"], critic_keys=["privileged_state"], normalize_observations=True, mean_init_scale=0.01
-    )
+    asymmetric = dict(actor_keys=["state"], critic_keys=["privileged_state"], normalize_observations=True)
     model = CGAC("MultiInputPolicy", env, policy_kwargs=asymmetric, seed=args.seed, verbose=0)
     model.learn(args.timesteps)
     path = export_policy(model, args.output)
