@@ -4,9 +4,8 @@ from sb3_cgac.buffers import CGACRolloutBuffer, samples_from_tensors, samples_to
 from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
 from sb3_cgac.compat import upgrade_saved_attributes
 from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
-from sb3_cgac.distributed import RANK_SEED_STRIDE, DataParallel, world
+from sb3_cgac.distributed import RANK_SEED_STRIDE, DataParallel, start_data_parallel, world
 from sb3_cgac.hyperparameters import (
-    FEW_ENVS,
     check_action_space,
     check_batch_fits,
     check_hyperparameters,
@@ -15,7 +14,7 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     warn_few_envs,
 )
-from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
+from sb3_cgac.losses import actor_loss, check_finite_parameters, critic_loss, total_grad_norm, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 from sb3_cgac.wrappers import warn_synchronised_resets
@@ -68,14 +67,11 @@ class CGAC(OnPolicyAlgorithm):
     :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window;
         the paper uses 8 for SNU humanoid and AllegroHand)
     :param tau: Polyak coefficient of the target critic at every actor update (1: no averaging). ``"auto"``: 0.02 on
-        a CPU; on a GPU the paper's tau_Q = 0.005 per 4096 new transitions scaled to the number of envs
-        (``sb3_cgac.hyperparameters.resolve_polyak_rates``)
+        a CPU; on a GPU the paper's tau_Q = 0.005 per 4096 new transitions, scaled to the number of envs
     :param policy_tau: Polyak coefficient of the averaged actor at every actor update (1: no averaging).
         ``"auto"``: 0.05 on a CPU; on a GPU the paper's tau_pi = 0.001 scaled the same way
-    :param predict_tau: Polyak coefficient, at every actor update, of a third copy of the actor that ``predict()``
-        (evaluation, deployment) acts with; training is unchanged: the averaged actor of ``policy_tau`` still
-        collects the data and draws the next actions. None: ``predict()`` acts with the averaged actor. A slow rate
-        (0.001) averages the actor over the last thousands of updates: it is meant for long runs
+    :param predict_tau: Polyak coefficient of a third copy of the actor that ``predict()`` acts with (training is
+        unchanged); None: ``predict()`` acts with the averaged actor. A slow rate (0.001) is meant for long runs
     :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
         to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
     :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12); the entropy
@@ -87,9 +83,8 @@ class CGAC(OnPolicyAlgorithm):
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the update's networks under bfloat16 autocast; the
         critics' output layer, losses, optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with
         AVX512-BF16 or AMX, float32 elsewhere, resolved again when a saved model is loaded
-    :param cuda_graphs: Replay the critic and actor updates as CUDA graphs (``sb3_cgac.cuda_graphs``): one launch
-        instead of hundreds of small kernels per step, the same arithmetic. CUDA only (ignored with a warning
-        elsewhere); the optimizers need a ``capturable`` option
+    :param cuda_graphs: Replay the critic and actor updates as CUDA graphs: one launch instead of hundreds of small
+        kernels, the same arithmetic. CUDA only (ignored with a warning elsewhere)
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -286,10 +281,8 @@ class CGAC(OnPolicyAlgorithm):
             return tensor_step.observations, tensor_env_step(tensor_step, self.device)
         new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
         step = vec_env_step(new_obs, rewards, dones, infos, self.device)
-        all_truncated = step.terminal is not None and len(step.terminal[0]) == env.num_envs >= FEW_ENVS
-        if all_truncated and not self._warned_synchronised_resets:
-            self._warned_synchronised_resets = True
-            warn_synchronised_resets()
+        if not self._warned_synchronised_resets:  # once per model
+            self._warned_synchronised_resets = warn_synchronised_resets(step.terminal, env.num_envs)
         if dones.any():  # episode statistics only come with finished episodes
             done_idx = np.flatnonzero(dones)
             self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
@@ -386,9 +379,7 @@ class CGAC(OnPolicyAlgorithm):
         self.critic.set_q_requires_grad(True)
         if self._parallel is not None:
             self._parallel.average_gradients(self._actor_parameters)
-        # What torch.nn.utils.get_total_norm computes (torch >= 2.6 only; this package supports torch >= 2.4)
-        grads = [param.grad for param in self._actor_parameters if param.grad is not None]
-        grad_norm = th.linalg.vector_norm(th.stack(th._foreach_norm(grads)))
+        grad_norm = total_grad_norm(self._actor_parameters)
         self.actor.optimizer.step()
 
         ent_coef_loss = th.zeros_like(loss)  # logged only when alpha is learned
@@ -441,12 +432,7 @@ class CGAC(OnPolicyAlgorithm):
         read = [finite.float(), ent_coef.reshape(()), std, *th.stack(critic_stats).mean(dim=0)]
         read += [*th.stack(actor_stats).mean(dim=0)] if actor_stats else []
         values = th.stack(read).tolist()
-        if not values[0]:
-            raise RuntimeError(
-                f"CGAC: network parameters became NaN/Inf after {self._n_updates} critic updates; training cannot go on. "
-                "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
-                "too high, or gradient clipping turned off (max_grad_norm)."
-            )
+        check_finite_parameters(bool(values[0]), self._n_updates)
         names = ["ent_coef", "std", "critic_loss", "q_mean", "critic_grad_norm"]
         names += ["actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss"] if actor_stats else []
         stats = dict(zip(names, values[1:], strict=True))
@@ -468,13 +454,7 @@ class CGAC(OnPolicyAlgorithm):
     ) -> SelfCGAC:
         check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)
         if self._parallel is None and world()[1] > 1:  # under torchrun: every rank calls learn()
-            if self.cuda_graphs:
-                raise ValueError("CGAC: cuda_graphs=True does not run with torch.distributed yet; pass cuda_graphs=False.")
-            self._parallel = DataParallel(self.device)
-            # The ranks run in step from rank 0's starting parameters
-            settings = {name: getattr(self, name) for name in ("n_envs", "n_steps", "batch_size", "critic_updates_per_step")}
-            tensors = [*self.policy.state_dict().values(), *([self.log_ent_coef] if self.log_ent_coef is not None else [])]
-            self._parallel.start(settings, tensors, self.get_vec_normalize_env())
+            self._parallel = start_data_parallel(self)
         if self._parallel is not None and self._parallel.rank != 0:  # rank 0 alone logs and shows progress
             progress_bar = False
             if not self._custom_logger:
@@ -497,12 +477,12 @@ class CGAC(OnPolicyAlgorithm):
         super().dump_logs(iteration)
 
     def _excluded_save_params(self) -> list[str]:
-        # Aliases into the policy (saved with it), and state rebuilt by _setup_model or at the next learn()
+        # Aliases into the policy (saved with it), state rebuilt by _setup_model or at the next learn(), the envs'
+        # observations (a torch-native env's tensors may be on a GPU; learn() resets a new env anyway), and an
+        # attribute of sb3_cgac 0.1.0 files (sb3_cgac.compat)
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs", "_obs_keys"]
         excluded += ["_warned_synchronised_resets", "_autocast_dtype", "_update_graphs", "_critic_parameters"]
-        # The envs' observations (a torch-native env's tensors may be on a GPU): learn() resets a new env anyway
-        excluded += ["_actor_parameters", "_parallel", "_last_obs"]
-        excluded += ["gradient_ratio_average"]  # set when a model of sb3_cgac 0.1.0 is loaded (sb3_cgac.compat)
+        excluded += ["_actor_parameters", "_parallel", "_last_obs", "gradient_ratio_average"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

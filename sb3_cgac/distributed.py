@@ -11,6 +11,7 @@ import datetime
 import os
 import sys
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -163,6 +164,21 @@ class DataParallel:
         with th.no_grad():
             for tensor in tensors:
                 dist.broadcast(tensor.data, src=0)
+
+
+def start_data_parallel(model: Any) -> DataParallel:
+    """
+    Start data-parallel training of a CGAC model on every rank (its ``learn()`` calls this under torchrun): the ranks
+    must agree on the settings that keep their updates in step, and start from rank 0's parameters, entropy
+    coefficient and VecNormalize statistics.
+    """
+    if model.cuda_graphs:
+        raise ValueError("CGAC: cuda_graphs=True does not run with torch.distributed yet; pass cuda_graphs=False.")
+    parallel = DataParallel(model.device)
+    settings = {name: getattr(model, name) for name in ("n_envs", "n_steps", "batch_size", "critic_updates_per_step")}
+    tensors = [*model.policy.state_dict().values(), *([model.log_ent_coef] if model.log_ent_coef is not None else [])]
+    parallel.start(settings, tensors, model.get_vec_normalize_env())
+    return parallel
 
 
 class VecNormalizeSync:

@@ -156,3 +156,19 @@ def update_log_ent_coef(
         with th.no_grad():
             log_ent_coef.copy_(clamped_log_ent_coef(log_ent_coef, previous, entropy_gap, mode))
     return loss.detach()
+
+
+def total_grad_norm(parameters: list[th.Tensor]) -> th.Tensor:
+    """The norm of all gradients together, as ``torch.nn.utils.get_total_norm`` (torch >= 2.6 only) computes it."""
+    grads = [param.grad for param in parameters if param.grad is not None]
+    return th.linalg.vector_norm(th.stack(th._foreach_norm(grads)))
+
+
+def check_finite_parameters(finite: bool, n_updates: int) -> None:
+    """Stop training with the likely causes once a parameter became NaN/Inf (it cannot recover)."""
+    if not finite:
+        raise RuntimeError(
+            f"CGAC: network parameters became NaN/Inf after {n_updates} critic updates; training cannot go on. "
+            "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
+            "too high, or gradient clipping turned off (max_grad_norm)."
+        )

@@ -4,6 +4,8 @@ import warnings
 from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
+from sb3_cgac.hyperparameters import FEW_ENVS
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -67,8 +69,16 @@ class RandomFirstEpisodeLength(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def warn_synchronised_resets() -> None:
-    """Warn that all envs reached their time limit at the same step (CGAC's rollout collection warns once per model)."""
+def warn_synchronised_resets(terminal: Any, n_envs: int) -> bool:
+    """
+    Warn when all envs reached their time limit at the same step (CGAC's rollout collection warns once per model).
+
+    :param terminal: The step's ``(env indices, observations)`` of truncated episodes, or None
+    :param n_envs: Number of envs; fewer than ``FEW_ENVS`` are expected to reset together
+    :return: Whether it warned
+    """
+    if terminal is None or not len(terminal[0]) == n_envs >= FEW_ENVS:
+        return False
     warnings.warn(
         "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
         "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
@@ -77,6 +87,7 @@ def warn_synchronised_resets() -> None:
         UserWarning,
         stacklevel=3,
     )
+    return True
 
 
 class VecObservationKeys(VecEnvWrapper):
