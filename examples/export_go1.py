@@ -33,8 +33,10 @@ def main() -> None:
     args = parser.parse_args()
 
     env = make_vec_env(ENV_ID, n_envs=args.n_envs, backend="envpool", seed=args.seed)
+    # The Go1 entry of hyperparams/cgac.yml: asymmetric, and starting near the standing pose with little noise
     asymmetric = dict(actor_keys=["state"], critic_keys=["privileged_state"], normalize_observations=True)
-    model = CGAC("MultiInputPolicy", env, policy_kwargs=asymmetric, seed=args.seed, verbose=0)
+    policy_kwargs = dict(**asymmetric, mean_init_scale=0.01, log_std_init=-2.3)
+    model = CGAC("MultiInputPolicy", env, policy_kwargs=policy_kwargs, target_entropy_beta=3.0, seed=args.seed, verbose=0)
     model.learn(args.timesteps)
     path = export_policy(model, args.output)
     print(f"Trained {model.num_timesteps} steps; wrote {path}")
