@@ -1,0 +1,52 @@
+"""
+How much reward Gaussian exploration noise around the zero action leaves, per noise level: a check of whether an
+initial policy standard deviation lets the critics see any reward (Go1's per-step reward is clipped at 0)::
+
+    python experiments/action_noise.py --env Go1JoystickFlatTerrain-v1 --stds 0 0.1 0.2 0.37 0.6 1.0
+
+For each std: actions ``clip(N(0, std), low, high)`` in every env for ``--steps`` steps, then the mean reward per
+step, the fraction of steps with a positive reward, and the number and mean length of the episodes that ended.
+"""
+
+import argparse
+
+from sb3_cgac.threads import configure_thread_spin
+
+configure_thread_spin()
+
+from sb3_cgac.vec_env import make_vec_env  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="Go1JoystickFlatTerrain-v1")
+    parser.add_argument("--backend", default="envpool")
+    parser.add_argument("--n-envs", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--stds", type=float, nargs="+", default=[0.0, 0.1, 0.2, 0.37, 0.6, 1.0])
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    env = make_vec_env(args.env, n_envs=args.n_envs, backend=args.backend, seed=args.seed, random_first_episode=False)
+    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    print("| std | reward per step | steps with reward > 0 | episodes ended | their mean length |")
+    print("| --- | --- | --- | --- | --- |")
+    for std in args.stds:
+        env.seed(args.seed)
+        env.reset()
+        rng = np.random.default_rng(args.seed)
+        rewards, lengths = [], []
+        for _ in range(args.steps):
+            actions = np.clip(rng.normal(0.0, std, (args.n_envs, *low.shape)), low, high).astype(np.float32)
+            _, reward, dones, infos = env.step(actions)
+            rewards.append(reward)
+            lengths += [infos[i]["episode"]["l"] for i in np.flatnonzero(dones) if "episode" in infos[i]]
+        rewards_array = np.asarray(rewards)
+        mean_length = f"{np.mean(lengths):.1f}" if lengths else "-"
+        print(f"| {std} | {rewards_array.mean():.5f} | {(rewards_array > 0).mean():.3f} | {len(lengths)} | {mean_length} |")
+
+
+if __name__ == "__main__":
+    main()
