@@ -347,6 +347,10 @@ class CGAC(OnPolicyAlgorithm):
         callback.on_rollout_end()
         return True
 
+    def _ent_coef(self) -> th.Tensor:
+        """The entropy coefficient alpha, on the device (no host sync)."""
+        return self.ent_coef_tensor if self.log_ent_coef is None else th.exp(self.log_ent_coef.detach())
+
     def _critic_update(self, *minibatch: th.Tensor) -> th.Tensor:
         """One critic update (paper Eq. 8) on a minibatch given as ``samples_to_tensors`` does; returns its statistics."""
         data = samples_from_tensors(minibatch, self._obs_keys)
@@ -368,7 +372,7 @@ class CGAC(OnPolicyAlgorithm):
         """
         data = samples_from_tensors(minibatch, self._obs_keys)
         weight_sum = data.weights.sum().clamp_min(1.0)
-        ent_coef = th.exp(self.log_ent_coef.detach()) if self.log_ent_coef is not None else self.ent_coef_tensor
+        ent_coef = self._ent_coef()
         # Only dQ/da is needed for the actor loss: the critics' own gradients are not computed
         self.critic.set_q_requires_grad(False)
         loss, log_prob = actor_loss(
@@ -426,7 +430,7 @@ class CGAC(OnPolicyAlgorithm):
         self.policy.set_training_mode(False)
 
         # One read from the device per iteration (no host sync inside the update loop): finiteness and statistics
-        ent_coef = self.ent_coef_tensor if self.log_ent_coef is None else th.exp(self.log_ent_coef.detach())
+        ent_coef = self._ent_coef()
         finite = self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef]))
         std = th.exp(self.actor.log_std.detach()).mean()
         read = [finite.float(), ent_coef.reshape(()), std, *th.stack(critic_stats).mean(dim=0)]
