@@ -313,7 +313,7 @@ def measure(args: argparse.Namespace, batch: int, critic: list[int], baseline: s
         vs_previous = f"{seconds / median(candidates[-1].times):.2f}" if baseline is not None else "-"
         rows.append(
             f"| {batch} | {critic} | {candidate.name} | {seconds * 1e3:.2f} | {seconds / sac_time:.2f} | "
-            f"{seconds / default_time:.2f} | {vs_previous} | {gflop / seconds:.1f} |"
+            f"{seconds / default_time:.2f} | {vs_previous} | {gflop / seconds:.3g} |"
         )
     return rows
 
