@@ -54,7 +54,9 @@ class RewardEntropySchedule(EntropyScheduleCallback):
     The paper's schedule (Eq. 13): beta follows the running average (EMA) of the per-step reward,
     from ``beta_init`` at ``init_expected_reward`` to ``beta_final`` at ``peak_expected_reward``
     (clipped to that range). The reward is the mean over envs of the unnormalized reward when
-    the env is wrapped in ``VecNormalize``.
+    the env is wrapped in ``VecNormalize``. With a torch-native env (``TorchVecEnv``) the average stays on the
+    env's device and beta is set at the end of each rollout, before the updates that read it: one host read per
+    rollout instead of one per step.
 
     :param beta_init: beta at (and below) the initial expected reward
     :param beta_final: beta at (and beyond) the peak expected reward
@@ -86,6 +88,7 @@ class RewardEntropySchedule(EntropyScheduleCallback):
         self.ema = ema
         # The paper's code starts the average at zero
         self.reward_average = 0.0
+        self._device_average: th.Tensor | None = None  # the average of a torch-native env's rewards, on its device
 
     def progress(self) -> float:
         span = self.peak_expected_reward - self.init_expected_reward
@@ -94,13 +97,30 @@ class RewardEntropySchedule(EntropyScheduleCallback):
     def _on_step(self) -> bool:
         vec_normalize = self.model.get_vec_normalize_env()
         rewards = vec_normalize.get_original_reward() if vec_normalize is not None else self.locals["rewards"]
-        if isinstance(rewards, th.Tensor):  # a torch-native env's (TorchVecEnv): one read of the step's rewards
-            rewards = rewards.cpu().numpy()
+        if isinstance(rewards, th.Tensor):
+            self._update_device_average(rewards)
+            return True
         finite = np.asarray(rewards)[np.isfinite(rewards)]
         if finite.size > 0:
             self.reward_average = self.ema * self.reward_average + (1.0 - self.ema) * float(finite.mean())
         self.logger.record("train/reward_average", self.reward_average)
         return super()._on_step()
+
+    def _update_device_average(self, rewards: th.Tensor) -> None:
+        # The same average as the NumPy path's, computed without leaving the device (no host sync per step)
+        if self._device_average is None:
+            self._device_average = th.tensor(self.reward_average, dtype=th.float64, device=rewards.device)
+        finite = th.isfinite(rewards)
+        count = finite.sum()
+        mean = th.where(finite, rewards, 0.0).sum(dtype=th.float64) / count.clamp_min(1)
+        updated = self.ema * self._device_average + (1.0 - self.ema) * mean
+        self._device_average = th.where(count > 0, updated, self._device_average)
+
+    def _on_rollout_end(self) -> None:
+        if self._device_average is not None:
+            self.reward_average = self._device_average.item()
+            self.logger.record("train/reward_average", self.reward_average)
+            self._set_beta()
 
 
 class ProgressEntropySchedule(EntropyScheduleCallback):

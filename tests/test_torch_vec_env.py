@@ -1,6 +1,7 @@
 """The torch-native path: TorchVecEnv's episode contract, and CGAC trained through it equal to the NumPy path."""
 
 from sb3_cgac import CGAC
+from sb3_cgac.callbacks import RewardEntropySchedule
 from sb3_cgac.vec_env import GymnasiumVecEnv, NumpyToTorchVectorEnv, TorchVecEnv, make_vec_env
 
 import gymnasium as gym
@@ -134,11 +135,11 @@ def test_torch_env_needs_same_step_autoreset():
         TorchVecEnv(NumpyToTorchVectorEnv(venv))
 
 
-def train(kind: str, steps: int = 8 * 120, **kwargs):
+def train(kind: str, steps: int = 8 * 120, callback=None, **kwargs):
     env = make_vec_env("Pendulum-v1", n_envs=8, backend=kind, seed=1, env_kwargs=dict(max_episode_steps=40))
     policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True)
     model = CGAC("MlpPolicy", env, batch_size=64, buffer_window=8, policy_kwargs=policy_kwargs, seed=0, **kwargs)
-    return model.learn(steps)
+    return model.learn(steps, callback=callback)
 
 
 @pytest.mark.parametrize("n_steps", [1, 3])
@@ -155,6 +156,18 @@ def test_cgac_torch_path_equals_numpy_path(n_steps):
     episodes = [[(e["r"], e["l"]) for e in model.ep_info_buffer] for model in (numpy_model, torch_model)]
     assert episodes[0] == episodes[1]
     assert len(torch_model.ep_info_buffer) > 0
+
+
+def test_reward_entropy_schedule_on_the_device():
+    # Eq. 13 on the torch path: the reward average stays on the device and beta is set once per rollout, before the
+    # updates read it: the schedule of the NumPy path (up to the float32 mean of the NumPy rewards; Pendulum's: -16 to 0)
+    schedules = [RewardEntropySchedule(init_expected_reward=-8.0, peak_expected_reward=-2.0) for _ in range(2)]
+    numpy_model = train("gymnasium", steps=8 * 60, n_steps=3, callback=schedules[0])
+    torch_model = train("gymnasium_torch", steps=8 * 60, n_steps=3, callback=schedules[1])
+    assert schedules[1]._device_average is not None and schedules[0]._device_average is None
+    assert schedules[1].reward_average == pytest.approx(schedules[0].reward_average, rel=1e-6)
+    assert -8.0 < schedules[0].reward_average < -2.0  # beta strictly between its ends: the schedule moved it
+    assert torch_model.target_entropy_beta == pytest.approx(numpy_model.target_entropy_beta, rel=1e-6)
 
 
 def test_collection_takes_no_numpy_step(monkeypatch):
