@@ -45,46 +45,38 @@ class CGAC(OnPolicyAlgorithm):
     Each iteration collects ``n_steps`` steps of every env with the *averaged actor* into a window of the last
     ``buffer_window`` steps, computes Q-GAE(lambda) targets from the *target critic* (Eq. 9-10), then runs
     ``critic_updates_per_step`` critic updates per collected step on uniform minibatches of the window, with an
-    actor and entropy-coefficient update (SAC-style, Eq. 7 and 12) and the Polyak updates of both averaged copies
-    every ``policy_delay`` critic updates. ``n_steps == buffer_window`` is PPO-like.
-
-    ``"auto"`` values resolve by device at construction (``sb3_cgac.hyperparameters``); the attributes then hold them.
+    actor and alpha update (Eq. 7 and 12) and the Polyak updates of both averaged copies every ``policy_delay``
+    critic updates. ``"auto"`` values resolve by device at construction (``sb3_cgac.hyperparameters``).
 
     :param policy: The policy model to use (MlpPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str). Use many parallel envs.
-    :param learning_rate: Learning rate of the actor and critics (Adam), constant or a schedule of the progress
-        remaining (from 1 to 0), e.g. the authors' linear decay ``LinearSchedule(2e-3, 1e-4, end_fraction)``;
-        the learned entropy coefficient's rate is 10x this rate (the paper's code) and follows the same schedule
+    :param learning_rate: Adam's learning rate of the actor and critics, constant or a schedule of the progress
+        remaining (e.g. the authors' decay ``LinearSchedule(2e-3, 1e-4, end_fraction)``); alpha's is 10x this rate
     :param n_steps: Number of new steps collected per env in each iteration
     :param buffer_window: Number of most recent steps per env kept in the buffer (paper: 32)
-    :param batch_size: Minibatch size (``"auto"``: 512 on a CPU, the paper's 4096 on a GPU, at most the window);
-        updates start once the window holds ``batch_size`` transitions
+    :param batch_size: Minibatch size (``"auto"``: 512 on a CPU, the paper's 4096 on a GPU, at most the window)
     :param critic_updates_per_step: Critic updates per collected step (``"auto"``: 4 on a CPU; on a GPU 4 below
-        1024 envs, from there on enough that each collected transition is sampled 8 times, at least the paper's 2)
-    :param policy_delay: One actor and entropy-coefficient update every ``policy_delay`` critic updates (paper: 2)
+        1024 envs, from there on enough that each transition is sampled 8 times, at least the paper's 2)
+    :param policy_delay: One actor and alpha update every ``policy_delay`` critic updates (paper: 2)
     :param gamma: Discount factor
     :param gae_lambda: lambda of the Q-GAE targets
-    :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window;
-        the paper uses 8 for SNU humanoid and AllegroHand)
-    :param tau: Polyak coefficient of the target critic at every actor update (1: no averaging). ``"auto"``: 0.02 on
-        a CPU; on a GPU the paper's tau_Q = 0.005 per 4096 new transitions, scaled to the number of envs
-    :param policy_tau: Polyak coefficient of the averaged actor at every actor update (1: no averaging).
-        ``"auto"``: 0.05 on a CPU; on a GPU the paper's tau_pi = 0.001 scaled the same way
+    :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window; paper: 8 for
+        SNU humanoid and AllegroHand)
+    :param tau: Polyak coefficient of the target critic at every actor update (``"auto"``: 0.02 on a CPU; on a
+        GPU the paper's 0.005 per 4096 new transitions, scaled to the number of envs)
+    :param policy_tau: Polyak coefficient of the averaged actor, likewise (``"auto"``: 0.05; paper: 0.001)
     :param predict_tau: Polyak coefficient of a third copy of the actor that ``predict()`` acts with (training is
-        unchanged); None: ``predict()`` acts with the averaged actor. A slow rate (0.001) is meant for long runs
-    :param ent_coef: Entropy coefficient alpha: a float for a fixed value, or ``"auto"`` / ``"auto_<init>"``
-        to learn it SAC-style (paper Eq. 12; the paper starts at 0.1)
-    :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` when learning alpha (Eq. 12); the entropy
-        schedules of ``sb3_cgac.callbacks`` (the paper's Eq. 13) change it during training
-    :param ent_coef_monotone: Clamp of the learned alpha (paper Sec. 4.2): ``"above_target"`` keeps alpha from
-        increasing while the entropy is at or above its target (it may rise to bring a collapsed entropy back up);
-        ``True`` is the paper's exact clamp ``alpha = min(alpha_prev, alpha_new)``; ``False`` leaves alpha free (SAC)
+        unchanged); None: ``predict()`` acts with the averaged actor
+    :param ent_coef: Entropy coefficient alpha: a float, or ``"auto"`` / ``"auto_<init>"`` to learn it (Eq. 12)
+    :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` (Eq. 12); the entropy schedules of
+        ``sb3_cgac.callbacks`` (Eq. 13) change it during training
+    :param ent_coef_monotone: Clamp of the learned alpha (Sec. 4.2): ``"above_target"`` keeps it from rising while
+        the entropy is at or above its target; ``True`` is the paper's ``alpha = min(alpha_prev, alpha_new)``;
+        ``False`` leaves it free (SAC)
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
-    :param update_precision: ``"float32"``, ``"bfloat16"`` (the update's networks under bfloat16 autocast; the
-        critics' output layer, losses, optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with
-        AVX512-BF16 or AMX, float32 elsewhere, resolved again when a saved model is loaded
-    :param cuda_graphs: Replay the critic and actor updates as CUDA graphs: one launch instead of hundreds of small
-        kernels, the same arithmetic. CUDA only (ignored with a warning elsewhere)
+    :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
+        optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
+    :param cuda_graphs: Replay the critic and actor updates as CUDA graphs (CUDA only; a warning elsewhere)
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -297,11 +289,9 @@ class CGAC(OnPolicyAlgorithm):
         n_rollout_steps: int,
     ) -> bool:
         """
-        Collect ``n_rollout_steps`` steps of every env with the averaged actor into the window (the value targets
-        are computed at the start of ``train()``). Each step draws the action of the following step at the new
-        observations and the "next action" of the step just taken at its next observation (the real terminal one at
-        a time limit). A ``TorchVecEnv`` is stepped with tensors, without host syncs; its finished episodes reach
-        ``ep_info_buffer`` at the end of the rollout.
+        Collect ``n_rollout_steps`` steps of every env with the averaged actor into the window, each with the "next
+        action" of its value target, drawn at its next observation (the real terminal one at a time limit). A
+        ``TorchVecEnv`` is stepped with tensors, without host syncs.
 
         :return: True if ``n_rollout_steps`` were collected, False if a callback stopped the rollout
         """
