@@ -36,3 +36,11 @@ def test_ci_runs_the_readme_myosuite_command():
     assert len(commands) == 1 and "tests/test_myosuite.py" in commands[0]
     match = re.search(r"^MYOSUITE_COMMAND='(.*)'$", ci, flags=re.MULTILINE)
     assert match is not None and match.group(1) == commands[0]
+
+
+def test_ci_runs_the_readme_mjlab_command():
+    ci = (ROOT / ".ci" / "run").read_text()
+    commands = [command for command in readme_commands() if ".venv-mjlab" in command]
+    assert len(commands) == 1 and "tests/test_mjlab.py" in commands[0]
+    match = re.search(r"^MJLAB_COMMAND='(.*)'$", ci, flags=re.MULTILINE)
+    assert match is not None and match.group(1) == commands[0]

@@ -152,16 +152,17 @@ def test_random_first_episode_length_needs_a_time_limit():
 
 def test_warns_about_synchronised_resets():
     kwargs = dict(policy_kwargs=dict(net_arch=[8]), buffer_window=4, seed=0)
+    limit = dict(max_episode_steps=20)  # short episodes: the same time limits in fewer steps
     with pytest.warns(UserWarning, match="same step"):
-        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16, seed=0), **kwargs).learn(16 * 201)
+        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16, seed=0, env_kwargs=limit), **kwargs).learn(16 * 21)
     import warnings
 
     from sb3_cgac.vec_env import make_vec_env as make_cgac_vec_env
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
-        env = make_cgac_vec_env("Pendulum-v1", n_envs=16, seed=0, random_first_episode=True)
-        CGAC("MlpPolicy", env, **kwargs).learn(16 * 401)
+        env = make_cgac_vec_env("Pendulum-v1", n_envs=16, seed=0, env_kwargs=limit, random_first_episode=True)
+        CGAC("MlpPolicy", env, **kwargs).learn(16 * 41)
 
 
 def test_predict_tau_leaves_training_unchanged():
@@ -200,8 +201,9 @@ def test_predict_tau_averages_the_actor():
 
 
 def test_synchronised_resets_warning_is_given_once():
-    # Two synchronised time limits (steps 200 and 400 of every env): one warning per model, not one per episode
+    # Two synchronised time limits (steps 20 and 40 of every env): one warning per model, not one per episode
     kwargs = dict(policy_kwargs=dict(net_arch=[8]), buffer_window=4, seed=0)
+    env = make_vec_env("Pendulum-v1", n_envs=16, seed=0, env_kwargs=dict(max_episode_steps=20))
     with pytest.warns(UserWarning) as record:
-        CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=16, seed=0), **kwargs).learn(16 * 401)
+        CGAC("MlpPolicy", env, **kwargs).learn(16 * 41)
     assert sum("same step" in str(warning.message) for warning in record) == 1

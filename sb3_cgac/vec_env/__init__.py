@@ -2,7 +2,7 @@
 Vectorised-env backends for large numbers of parallel envs, all as Stable-Baselines3 ``VecEnv``:
 SB3's ``DummyVecEnv`` and ``SubprocVecEnv``, ``EnvPoolVecEnv`` (C++ thread pool, extra ``envpool``),
 ``GymnasiumVecEnv`` over ``gymnasium.make_vec`` (sync or async), and ``TorchVecEnv`` over torch-native batched
-simulators (tensors on a device, stepped by CGAC without NumPy).
+simulators (tensors on a device, stepped by CGAC without NumPy: MuJoCo Playground, mjlab).
 """
 
 import contextlib
@@ -21,7 +21,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async", "gymnasium_torch", "playground")
+BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async", "gymnasium_torch", "playground", "mjlab")
 # The entries of Monitor's episode dicts; the others are the adapters' episode_info statistics
 MONITOR_KEYS = ("r", "l", "t")
 
@@ -81,7 +81,8 @@ def make_vec_env(
         (``gymnasium.make_vec`` in sync or async mode), ``"gymnasium_torch"`` (the sync one seen as a torch-native
         env, ``TorchVecEnv``: CGAC's path for GPU simulators, here on the CPU), ``"playground"`` (a MuJoCo Playground
         task in JAX, ``PlaygroundVectorEnv`` as a ``TorchVecEnv``: extra ``playground``; ``vec_env_kwargs`` ``impl``,
-        ``episode_length``, ``config_overrides``)
+        ``episode_length``, ``config_overrides``), ``"mjlab"`` (an mjlab task on MuJoCo Warp, ``MjlabVectorEnv`` as a
+        ``TorchVecEnv``: extra ``mjlab``; ``vec_env_kwargs`` ``device``, ``clip_actions``, ``episode_length_s``)
     :param seed: Seed of the envs (env i gets ``seed + i``)
     :param env_kwargs: Keyword arguments of the env constructor
     :param vec_env_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool,
@@ -106,11 +107,13 @@ def make_vec_env(
             vec_env_kwargs=vec_env_kwargs,
             wrapper_class=RandomFirstEpisodeLength if random_first_episode else None,
         )
-    if backend == "playground":
-        from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv
-
-        playground = PlaygroundVectorEnv(env_id, n_envs, **vec_env_kwargs, **env_kwargs)
-        tensor_env = TorchVecEnv(playground, random_first_episode=random_first_episode)
+    if backend in ("playground", "mjlab"):  # torch-native simulators, imported only when asked for
+        if backend == "playground":
+            from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv as venv_class
+        else:
+            from sb3_cgac.vec_env.mjlab_vec_env import MjlabVectorEnv as venv_class  # type: ignore[assignment]
+        simulator = venv_class(env_id, n_envs, **vec_env_kwargs, **env_kwargs)
+        tensor_env = TorchVecEnv(simulator, random_first_episode=random_first_episode)
         if seed is not None:
             tensor_env.seed(seed)
         return tensor_env
