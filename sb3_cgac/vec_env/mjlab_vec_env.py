@@ -44,8 +44,8 @@ class MjlabVectorEnv(gym.vector.VectorEnv):
     :param task_id: An mjlab task, e.g. ``"Mjlab-Velocity-Flat-Unitree-Go1"`` (``mjlab.tasks.registry.list_tasks()``)
     :param num_envs: Number of parallel envs
     :param device: Device of the simulation (``"cuda:0"``; ``"cpu"`` runs MuJoCo Warp's CPU backend, for tests)
-    :param clip_actions: The actions' bounds ``[-clip_actions, clip_actions]`` (mjlab's actions are unbounded; CGAC's
-        squashed actions need bounds: 1 keeps them within the task's action scale around its default pose)
+    :param clip_actions: The bounds ``[-clip_actions, clip_actions]`` of the action space (mjlab's actions are
+        unbounded; CGAC squashes its actions into the space's bounds), in units of the task's action scale
     :param play: Use the task's "play" configuration (evaluation) instead of its training one
     :param episode_length_s: Time limit of the episodes in seconds (None: the task's)
     """
