@@ -3,6 +3,8 @@
 import pathlib
 import re
 
+import pytest
+
 ROOT = pathlib.Path(__file__).parents[1]
 
 
@@ -30,17 +32,11 @@ def test_ci_runs_the_readme_commands():
         assert match.group(1) == command
 
 
-def test_ci_runs_the_readme_myosuite_command():
+@pytest.mark.parametrize("name", ["myosuite", "mjlab"])
+def test_ci_runs_the_readme_own_environment_commands(name):
+    """The extras that pin their own dependencies: a venv, a command and a test file each."""
     ci = (ROOT / ".ci" / "run").read_text()
-    commands = [command for command in readme_commands() if ".venv-myosuite" in command]
-    assert len(commands) == 1 and "tests/test_myosuite.py" in commands[0]
-    match = re.search(r"^MYOSUITE_COMMAND='(.*)'$", ci, flags=re.MULTILINE)
-    assert match is not None and match.group(1) == commands[0]
-
-
-def test_ci_runs_the_readme_mjlab_command():
-    ci = (ROOT / ".ci" / "run").read_text()
-    commands = [command for command in readme_commands() if ".venv-mjlab" in command]
-    assert len(commands) == 1 and "tests/test_mjlab.py" in commands[0]
-    match = re.search(r"^MJLAB_COMMAND='(.*)'$", ci, flags=re.MULTILINE)
+    commands = [command for command in readme_commands() if f".venv-{name} " in command]
+    assert len(commands) == 1 and f"tests/test_{name}.py" in commands[0]
+    match = re.search(rf"^{name.upper()}_COMMAND='(.*)'$", ci, flags=re.MULTILINE)
     assert match is not None and match.group(1) == commands[0]
