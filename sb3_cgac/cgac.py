@@ -1,10 +1,9 @@
 from typing import Any, ClassVar, TypeVar
 
 from sb3_cgac.buffers import CGACRolloutBuffer, samples_from_tensors, samples_to_tensors
-from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
 from sb3_cgac.compat import upgrade_saved_attributes
 from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
-from sb3_cgac.distributed import RANK_SEED_STRIDE, DataParallel, start_data_parallel, world
+from sb3_cgac.distributed import RANK_SEED_STRIDE, start_data_parallel, world
 from sb3_cgac.hyperparameters import (
     check_action_space,
     check_batch_fits,
@@ -14,15 +13,19 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     warn_few_envs,
 )
-from sb3_cgac.losses import actor_loss, check_finite_parameters, critic_loss, total_grad_norm, update_log_ent_coef
+from sb3_cgac.losses import (
+    actor_loss,
+    check_finite_parameters,
+    critic_loss,
+    read_statistics,
+    total_grad_norm,
+    update_log_ent_coef,
+)
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
-from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
-from sb3_cgac.wrappers import warn_synchronised_resets
+from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure as configure_logger
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
@@ -34,9 +37,12 @@ SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
 
 # Alpha's learning rate is this multiple of the actor's (the paper's code), and follows its schedule
 ENT_COEF_LR_FACTOR = 10.0
+# What the critic and actor updates return, in order
+CRITIC_STATISTICS = ("critic_loss", "q_mean", "critic_grad_norm")
+ACTOR_STATISTICS = ("actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss")
 
 
-class CGAC(OnPolicyAlgorithm):
+class CGAC(WindowOnPolicyAlgorithm):
     """
     Critic-Gradient-based Actor-Critic (CGAC), an on-policy actor-critic for massively parallel simulators.
     Paper: "Practical Critic Gradient based Actor Critic for On-Policy Reinforcement Learning",
@@ -94,8 +100,6 @@ class CGAC(OnPolicyAlgorithm):
         "MlpPolicy": MlpPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }
-    policy: CGACPolicy  # type: ignore[assignment]
-    rollout_buffer: CGACRolloutBuffer  # type: ignore[assignment]
     actor: Actor
     actor_avg: Actor
     critic: CGACCritic
@@ -175,10 +179,6 @@ class CGAC(OnPolicyAlgorithm):
         self.rollout_buffer_kwargs = rollout_buffer_kwargs or {}
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Optimizer | None = None
-        # Collection state: actions already sampled for `_last_obs`, and the `_last_obs` the buffer ends with
-        self._pending_actions: th.Tensor | None = None
-        self._rollout_obs: Any = None
-        self._warned_synchronised_resets = False
 
         check_hyperparameters(self)
         if _init_setup_model:
@@ -232,8 +232,6 @@ class CGAC(OnPolicyAlgorithm):
         self._update_graphs = UpdateGraphs(
             self._critic_update, self._actor_update, self._optimizers, self.device, self.cuda_graphs
         )
-        # Data-parallel training starts with learn(): a model built or loaded on one rank alone (to evaluate) waits for none
-        self._parallel: DataParallel | None = None
 
     def set_random_seed(self, seed: int | None = None) -> None:
         # Under torch.distributed each rank gets its own seed: its own envs and minibatches
@@ -251,91 +249,6 @@ class CGAC(OnPolicyAlgorithm):
     def _optimizers(self) -> list[th.optim.Optimizer]:
         """The optimizers of the updates: actor, critics and, when alpha is learned, alpha's."""
         return [self.actor.optimizer, self.critic.optimizer, *([self.ent_coef_optimizer] if self.ent_coef_optimizer else [])]
-
-    def _start_rollout(self, buffer: CGACRolloutBuffer, tensor_env: TorchVecEnv | None) -> None:
-        # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
-        # set_env, load): start a new window from `_last_obs`.
-        if tensor_env is not None:
-            obs, ok = tensor_observations(tensor_env.last_observations, self.device)
-        else:
-            obs, ok = observations_to_tensor(self._last_obs, self.device)  # type: ignore[assignment]
-        buffer.reset()
-        buffer.set_current_obs(obs, ok)
-        self.policy.update_obs_normalizer(obs, ok, self._parallel.sum if self._parallel else None)
-        with th.inference_mode():
-            self._pending_actions = self.actor_avg.sample(obs, 1)[0]
-        self._rollout_obs = self._last_obs
-
-    def _step_env(self, env: VecEnv, actions: th.Tensor) -> tuple[Any, EnvStep]:
-        """One step of every env; returns what ``_last_obs`` becomes and the step as the window stores it."""
-        if isinstance(env, TorchVecEnv):  # tensors on the device throughout, no host sync
-            tensor_step = env.step_tensors(self.policy.unscale_action_tensor(actions))
-            return tensor_step.observations, tensor_env_step(tensor_step, self.device)
-        new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
-        step = vec_env_step(new_obs, rewards, dones, infos, self.device)
-        if not self._warned_synchronised_resets:  # once per model
-            self._warned_synchronised_resets = warn_synchronised_resets(step.terminal, env.num_envs)
-        if dones.any():  # episode statistics only come with finished episodes
-            done_idx = np.flatnonzero(dones)
-            self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
-        self._last_episode_starts = dones
-        return new_obs, step
-
-    def collect_rollouts(  # type: ignore[override]
-        self,
-        env: VecEnv,
-        callback: BaseCallback,
-        rollout_buffer: CGACRolloutBuffer,
-        n_rollout_steps: int,
-    ) -> bool:
-        """
-        Collect ``n_rollout_steps`` steps of every env with the averaged actor into the window, each with the "next
-        action" of its value target, drawn at its next observation (the real terminal one at a time limit). A
-        ``TorchVecEnv`` is stepped with tensors, without host syncs.
-
-        :return: True if ``n_rollout_steps`` were collected, False if a callback stopped the rollout
-        """
-        assert self._last_obs is not None, "No previous observation was provided"
-        if self.policy.training:
-            self.policy.set_training_mode(False)
-        tensor_env = env if isinstance(env, TorchVecEnv) else None
-        if self._pending_actions is None or self._last_obs is not self._rollout_obs:
-            self._start_rollout(rollout_buffer, tensor_env)
-        assert self._pending_actions is not None
-        callback.on_rollout_start()
-
-        for _ in range(n_rollout_steps):
-            actions = self._pending_actions
-            new_obs, step = self._step_env(env, actions)
-            rewards, dones, infos = step.rewards, step.dones, step.infos  # SB3's names, for the callbacks' locals
-            self.num_timesteps += env.num_envs
-            self.policy.update_obs_normalizer(step.observations, step.obs_ok, self._parallel.sum if self._parallel else None)
-            with th.inference_mode():
-                # The action of the next step at s_{t+1}, and the "next action" a'_{t+1} of this transition for its
-                # value target (at the terminal observation of a truncated episode)
-                next_step_actions = self.actor_avg.sample(step.observations, 1)[0]
-                next_actions = self.actor_avg.sample(step.bootstrap_observations(), 1)[0]
-
-            rollout_buffer.add(
-                actions, rewards, step.terminated, step.truncated, step.observations, step.obs_ok, next_actions, step.terminal
-            )
-            self._last_obs = self._rollout_obs = new_obs
-            self._pending_actions = next_step_actions
-
-            callback.update_locals(locals())
-            keep_going = callback.on_step()
-            if self._parallel is not None:  # a callback of one rank (rank 0's evaluation) stops every rank
-                keep_going = self._parallel.all_agree(keep_going)
-            if not keep_going:
-                return False
-
-        if tensor_env is not None:  # one host read of the rollout's finished episodes
-            self.ep_info_buffer.extend(tensor_env.pop_episodes())  # type: ignore[union-attr]
-        if self._parallel is not None:  # one set of VecNormalize statistics for every rank
-            self._parallel.sync_vec_normalize(self.get_vec_normalize_env())
-        callback.update_locals(locals())
-        callback.on_rollout_end()
-        return True
 
     def _ent_coef(self) -> th.Tensor:
         """The entropy coefficient alpha, on the device (no host sync)."""
@@ -385,15 +298,6 @@ class CGAC(OnPolicyAlgorithm):
         self.policy.polyak_update(self.tau, self.policy_tau, self.predict_tau)
         return th.stack([loss.detach(), grad_norm, entropy, ent_coef_loss])
 
-    def _update_learning_rates(self) -> float:
-        learning_rate = self.lr_schedule(self._current_progress_remaining)
-        set_learning_rate(self.actor.optimizer, learning_rate)
-        set_learning_rate(self.critic.optimizer, learning_rate)
-        self.logger.record("train/learning_rate", learning_rate)
-        if self.ent_coef_optimizer is not None:
-            set_learning_rate(self.ent_coef_optimizer, ENT_COEF_LR_FACTOR * learning_rate)
-        return learning_rate
-
     def train(self) -> None:
         """Value targets of the new steps, then critic, actor, entropy-coefficient and Polyak updates on minibatches."""
         # Qbar of the new steps by the target critic, and the window's Q-GAE(lambda) targets (paper Eq. 9-11)
@@ -401,7 +305,9 @@ class CGAC(OnPolicyAlgorithm):
         if self.rollout_buffer.n_transitions < self.batch_size:
             return  # the window does not hold a minibatch yet
         self.policy.set_training_mode(True)
-        self._update_learning_rates()
+        learning_rate = self.lr_schedule(self._current_progress_remaining)
+        for optimizer, factor in zip(self._optimizers(), (1.0, 1.0, ENT_COEF_LR_FACTOR), strict=False):
+            set_learning_rate(optimizer, factor * learning_rate)  # in place: CUDA graphs read it from the same memory
         if self._parallel is not None:  # an entropy schedule that follows each rank's rewards: one target for all
             self.target_entropy_beta = self._parallel.mean_float(self.target_entropy_beta)
         target_entropy = -self.target_entropy_beta * float(get_action_dim(self.action_space))
@@ -420,19 +326,14 @@ class CGAC(OnPolicyAlgorithm):
         self.policy.set_training_mode(False)
 
         # One read from the device per iteration (no host sync inside the update loop): finiteness and statistics
-        ent_coef = self._ent_coef()
         finite = self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef]))
-        std = th.exp(self.actor.log_std.detach()).mean()
-        read = [finite.float(), ent_coef.reshape(()), std, *th.stack(critic_stats).mean(dim=0)]
-        read += [*th.stack(actor_stats).mean(dim=0)] if actor_stats else []
-        values = th.stack(read).tolist()
-        check_finite_parameters(bool(values[0]), self._n_updates)
-        names = ["ent_coef", "std", "critic_loss", "q_mean", "critic_grad_norm"]
-        names += ["actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss"] if actor_stats else []
-        stats = dict(zip(names, values[1:], strict=True))
+        scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": th.exp(self.actor.log_std.detach()).mean()}
+        stats = read_statistics(scalars, {CRITIC_STATISTICS: critic_stats, ACTOR_STATISTICS: actor_stats})
+        check_finite_parameters(bool(stats.pop("finite")), self._n_updates)
         if self.ent_coef_optimizer is None:
             stats.pop("ent_coef_loss", None)
         stats.update(target_entropy=target_entropy, beta=self.target_entropy_beta, tau=self.tau, policy_tau=self.policy_tau)
+        stats.update(learning_rate=learning_rate)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, value in stats.items():
             self.logger.record(f"train/{key}", value)
@@ -462,21 +363,11 @@ class CGAC(OnPolicyAlgorithm):
             progress_bar=progress_bar,
         )
 
-    def dump_logs(self, iteration: int = 0) -> None:
-        # The adapters' episode statistics (reward components, task metrics) beside rollout/ep_rew_mean
-        for key, value in episode_metrics(self.ep_info_buffer or ()).items():
-            self.logger.record(f"rollout/ep_{key}_mean", value)
-        # Read when the logs are written (a torch-native env counts them on the device)
-        self.logger.record("rollout/nonfinite_transitions", self.rollout_buffer.n_nonfinite)
-        super().dump_logs(iteration)
-
     def _excluded_save_params(self) -> list[str]:
-        # Aliases into the policy (saved with it), state rebuilt by _setup_model or at the next learn(), the envs'
-        # observations (a torch-native env's tensors may be on a GPU; learn() resets a new env anyway), and an
-        # attribute of sb3_cgac 0.1.0 files (sb3_cgac.compat)
-        excluded = ["actor", "actor_avg", "critic", "critic_target", "_pending_actions", "_rollout_obs", "_obs_keys"]
-        excluded += ["_warned_synchronised_resets", "_autocast_dtype", "_update_graphs", "_critic_parameters"]
-        excluded += ["_actor_parameters", "_parallel", "_last_obs", "gradient_ratio_average"]
+        # Aliases into the policy (saved with it), state rebuilt by _setup_model, and an attribute of sb3_cgac 0.1.0
+        # files (sb3_cgac.compat)
+        excluded = ["actor", "actor_avg", "critic", "critic_target", "_obs_keys", "_autocast_dtype", "_update_graphs"]
+        excluded += ["_critic_parameters", "_actor_parameters", "gradient_ratio_average"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

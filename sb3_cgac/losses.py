@@ -164,6 +164,23 @@ def total_grad_norm(parameters: list[th.Tensor]) -> th.Tensor:
     return th.linalg.vector_norm(th.stack(th._foreach_norm(grads)))
 
 
+def read_statistics(scalars: dict[str, th.Tensor], updates: dict[tuple[str, ...], list[th.Tensor]]) -> dict[str, float]:
+    """
+    Read an iteration's statistics from the device in one transfer (no host sync inside the update loop).
+
+    :param scalars: One-element tensors by name
+    :param updates: For each kind of update, the names of its statistics and the stacked statistics of each update
+        of that kind (none: left out)
+    :return: The scalars, and the mean of each statistic over the updates, by name
+    """
+    names, tensors = list(scalars), [value.reshape(()).float() for value in scalars.values()]
+    for update_names, stacked in updates.items():
+        if stacked:
+            names += update_names
+            tensors += [*th.stack(stacked).mean(dim=0)]
+    return dict(zip(names, th.stack(tensors).tolist(), strict=True))
+
+
 def check_finite_parameters(finite: bool, n_updates: int) -> None:
     """Stop training with the likely causes once a parameter became NaN/Inf (it cannot recover)."""
     if not finite:

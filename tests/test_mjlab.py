@@ -65,7 +65,15 @@ def test_partial_reset_and_random_first_episode():
     # Every env's first episode ends once within its time limit (a random cut, or the limit itself); only the
     # episodes that reached the limit are reported, as Monitor would
     assert (ends == 1).all()
-    assert all(episode["l"] == EPISODE for episode in env.pop_episodes())
+    for _ in range(EPISODE):  # every env's second episode reaches the time limit
+        env.step_tensors(th.zeros(8, 1))
+    episodes = env.pop_episodes()
+    assert len(episodes) >= 8 and all(episode["l"] == EPISODE for episode in episodes)
+    # Each reward term of the task reaches the episode statistics; their means add up to the mean return
+    terms = [f"reward_{term}" for term in load_env_cfg(TASK).rewards]
+    assert terms and all(set(terms) <= set(episode) for episode in episodes)
+    mean_terms = sum(np.mean([episode[key] for episode in episodes]) for key in terms)
+    np.testing.assert_allclose(mean_terms, np.mean([episode["r"] for episode in episodes]), rtol=1e-4)
 
 
 def test_cgac_trains_on_mjlab(tmp_path):

@@ -9,7 +9,9 @@ ROOT = pathlib.Path(__file__).parents[1]
 
 
 def readme_commands() -> list[str]:
-    return re.findall(r"```bash\n(.*?)\n```", (ROOT / "README.md").read_text(), flags=re.DOTALL)
+    """The lines of the README's bash blocks, in order."""
+    blocks = re.findall(r"```bash\n(.*?)\n```", (ROOT / "README.md").read_text(), flags=re.DOTALL)
+    return [line for block in blocks for line in block.splitlines()]
 
 
 def test_readme_starts_with_the_two_setup_commands():

@@ -79,9 +79,9 @@ def test_learning_rate_decay(tmp_path):
     # The last iteration's updates run at progress remaining 0: the end of the decay
     for optimizer, factor in ((model.actor.optimizer, 1), (model.critic.optimizer, 1), (model.ent_coef_optimizer, 10)):
         assert optimizer.param_groups[0]["lr"] == pytest.approx(factor * 1e-4)
-    # A quarter of the way: half of the decay
+    # An iteration a quarter of the way: half of the decay
     model._current_progress_remaining = 0.75
-    model._update_learning_rates()
+    model.train()
     middle = 2e-3 + 0.5 * (1e-4 - 2e-3)
     assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(middle)
     assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(middle)

@@ -1,0 +1,134 @@
+"""
+The collection half of CGAC (as SB3 keeps ``collect_rollouts`` in ``OnPolicyAlgorithm`` and the updates in PPO):
+:class:`WindowOnPolicyAlgorithm` steps the envs with the averaged actor into a rolling window that stores, for each
+transition, the "next action" its Q-GAE target needs; ``CGAC`` adds the updates.
+"""
+
+from typing import Any
+
+from sb3_cgac.buffers import CGACRolloutBuffer
+from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
+from sb3_cgac.distributed import DataParallel
+from sb3_cgac.policies import CGACPolicy
+from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
+from sb3_cgac.wrappers import warn_synchronised_resets
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+from stable_baselines3.common.vec_env import VecEnv
+
+
+class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
+    """
+    An on-policy algorithm whose rollouts go into a window of the last steps of every env (``CGACRolloutBuffer``),
+    collected with the policy's averaged actor. Each transition also stores the action the averaged actor draws at its
+    next observation (the real terminal one at a time limit), and the policy's in-policy observation statistics follow
+    every observation. A ``TorchVecEnv`` is stepped with device tensors, without host syncs.
+    """
+
+    policy: CGACPolicy  # type: ignore[assignment]
+    rollout_buffer: CGACRolloutBuffer  # type: ignore[assignment]
+    # Collection state: actions already sampled for `_last_obs`, and the `_last_obs` the window ends with
+    _pending_actions: th.Tensor | None = None
+    _rollout_obs: Any = None
+    _warned_synchronised_resets = False
+    # Data-parallel training (sb3_cgac.distributed), started by learn() under torchrun
+    _parallel: DataParallel | None = None
+
+    def _start_rollout(self, buffer: CGACRolloutBuffer, tensor_env: TorchVecEnv | None) -> None:
+        # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
+        # set_env, load): start a new window from `_last_obs`.
+        if tensor_env is not None:
+            obs, ok = tensor_observations(tensor_env.last_observations, self.device)
+        else:
+            obs, ok = observations_to_tensor(self._last_obs, self.device)  # type: ignore[assignment]
+        buffer.reset()
+        buffer.set_current_obs(obs, ok)
+        self.policy.update_obs_normalizer(obs, ok, self._parallel.sum if self._parallel else None)
+        with th.inference_mode():
+            self._pending_actions = self.policy.actor_avg.sample(obs, 1)[0]
+        self._rollout_obs = self._last_obs
+
+    def _step_env(self, env: VecEnv, actions: th.Tensor) -> tuple[Any, EnvStep]:
+        """One step of every env; returns what ``_last_obs`` becomes and the step as the window stores it."""
+        if isinstance(env, TorchVecEnv):  # tensors on the device throughout, no host sync
+            tensor_step = env.step_tensors(self.policy.unscale_action_tensor(actions))
+            return tensor_step.observations, tensor_env_step(tensor_step, self.device)
+        new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
+        step = vec_env_step(new_obs, rewards, dones, infos, self.device)
+        if not self._warned_synchronised_resets:  # once per model
+            self._warned_synchronised_resets = warn_synchronised_resets(step.terminal, env.num_envs)
+        if dones.any():  # episode statistics only come with finished episodes
+            done_idx = np.flatnonzero(dones)
+            self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
+        self._last_episode_starts = dones
+        return new_obs, step
+
+    def collect_rollouts(  # type: ignore[override]
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        rollout_buffer: CGACRolloutBuffer,
+        n_rollout_steps: int,
+    ) -> bool:
+        """
+        Collect ``n_rollout_steps`` steps of every env into the window, with their next actions.
+
+        :return: True if ``n_rollout_steps`` were collected, False if a callback stopped the rollout
+        """
+        assert self._last_obs is not None, "No previous observation was provided"
+        if self.policy.training:
+            self.policy.set_training_mode(False)
+        tensor_env = env if isinstance(env, TorchVecEnv) else None
+        if self._pending_actions is None or self._last_obs is not self._rollout_obs:
+            self._start_rollout(rollout_buffer, tensor_env)
+        assert self._pending_actions is not None
+        callback.on_rollout_start()
+
+        for _ in range(n_rollout_steps):
+            actions = self._pending_actions
+            new_obs, step = self._step_env(env, actions)
+            rewards, dones, infos = step.rewards, step.dones, step.infos  # SB3's names, for the callbacks' locals
+            self.num_timesteps += env.num_envs
+            self.policy.update_obs_normalizer(step.observations, step.obs_ok, self._parallel.sum if self._parallel else None)
+            with th.inference_mode():
+                # The action of the next step at s_{t+1}, and the "next action" a'_{t+1} of this transition for its
+                # value target (at the terminal observation of a truncated episode)
+                next_step_actions = self.policy.actor_avg.sample(step.observations, 1)[0]
+                next_actions = self.policy.actor_avg.sample(step.bootstrap_observations(), 1)[0]
+
+            rollout_buffer.add(
+                actions, rewards, step.terminated, step.truncated, step.observations, step.obs_ok, next_actions, step.terminal
+            )
+            self._last_obs = self._rollout_obs = new_obs
+            self._pending_actions = next_step_actions
+
+            callback.update_locals(locals())
+            keep_going = callback.on_step()
+            if self._parallel is not None:  # a callback of one rank (rank 0's evaluation) stops every rank
+                keep_going = self._parallel.all_agree(keep_going)
+            if not keep_going:
+                return False
+
+        if tensor_env is not None:  # one host read of the rollout's finished episodes
+            self.ep_info_buffer.extend(tensor_env.pop_episodes())  # type: ignore[union-attr]
+        if self._parallel is not None:  # one set of VecNormalize statistics for every rank
+            self._parallel.sync_vec_normalize(self.get_vec_normalize_env())
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def dump_logs(self, iteration: int = 0) -> None:
+        # The adapters' episode statistics (reward components, task metrics) beside rollout/ep_rew_mean
+        for key, value in episode_metrics(self.ep_info_buffer or ()).items():
+            self.logger.record(f"rollout/ep_{key}_mean", value)
+        # Read when the logs are written (a torch-native env counts them on the device)
+        self.logger.record("rollout/nonfinite_transitions", self.rollout_buffer.n_nonfinite)
+        super().dump_logs(iteration)
+
+    def _excluded_save_params(self) -> list[str]:
+        # Collection state, rebuilt at the next learn() (a torch-native env's observations may be on a GPU)
+        excluded = ["_pending_actions", "_rollout_obs", "_warned_synchronised_resets", "_parallel", "_last_obs"]
+        return [*super()._excluded_save_params(), *excluded]
