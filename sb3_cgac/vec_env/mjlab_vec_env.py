@@ -87,6 +87,7 @@ class MjlabVectorEnv(gym.vector.VectorEnv):
         action_dim = int(self.env.action_manager.total_action_dim)
         self.single_action_space = spaces.Box(-clip_actions, clip_actions, (action_dim,), np.float32)
         self.reward_terms = list(self.env.reward_manager.active_terms)
+        self._reward_keys = [f"reward_{term}" for term in self.reward_terms]
         self._no_reward_terms = th.zeros(num_envs, device=self.device)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
@@ -109,19 +110,16 @@ class MjlabVectorEnv(gym.vector.VectorEnv):
             terminated, time_outs = terminated | time_outs, th.zeros_like(time_outs)
         truncated = time_outs & ~terminated
         done = terminated | truncated
-        info: dict[str, Any] = {"final_obs": obs, **dict.fromkeys(self._reward_keys(), self._no_reward_terms)}
+        info: dict[str, Any] = {"final_obs": obs, **dict.fromkeys(self._reward_keys, self._no_reward_terms)}
         done_ids = done.nonzero().squeeze(-1)
         if done_ids.numel() > 0:  # mjlab's own step reads the same count from the device
             fresh, _ = self.env.reset(env_ids=done_ids)
             obs = where_rows(done, dict(fresh), obs)
             # The reset's log: each term's episode sum averaged over the reset envs, per second of the time limit
             log, seconds = self.env.extras["log"], self.env.max_episode_length_s
-            for key, term in zip(self._reward_keys(), self.reward_terms, strict=True):
+            for key, term in zip(self._reward_keys, self.reward_terms, strict=True):
                 info[key] = th.where(done, log[f"Episode_Reward/{term}"] * seconds, self._no_reward_terms)
         return obs, rewards.float(), terminated.bool(), truncated.bool(), info
-
-    def _reward_keys(self) -> list[str]:
-        return [f"reward_{term}" for term in self.reward_terms]
 
     def close(self, **kwargs: Any) -> None:
         self.env.close()
