@@ -1,0 +1,93 @@
+"""
+How saturated CGAC's actions become while an entry trains: every ``--every`` iterations, the actor's std, the share of
+deterministic actions ``tanh(mean)`` beyond 0.9 and 0.99 in magnitude on the envs' current observations, the mean
+magnitude of the pre-tanh means, alpha, the entropy and its target, and the training episodes' mean length and return::
+
+    python experiments/action_saturation.py --env Go1JoystickFlatTerrain-v1 --minutes 10
+    python experiments/action_saturation.py --env MuJoCoPlayground/LeapCubeReorient-v1 --params learning_rate=0.0003
+
+``--gaussian-entropy`` screens an entropy target on the Gaussian before the tanh: alpha's update (paper Eq. 12) reads
+the pre-tanh log-probability, the actor's loss (Eq. 7) is unchanged.
+"""
+
+import argparse
+import ast
+import time
+
+from sb3_cgac.threads import configure_thread_spin
+
+configure_thread_spin()
+
+import sb3_cgac.cgac  # noqa: E402
+from sb3_cgac import CGAC  # noqa: E402
+from sb3_cgac.policies import TANH_EPSILON  # noqa: E402
+from sb3_cgac.zoo import build_model  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch as th  # noqa: E402
+from stable_baselines3.common.logger import configure  # noqa: E402
+
+
+def gaussian_entropy_actor_loss(actor, critic, observations, weights, weight_sum, ent_coef, autocast_dtype=None):  # type: ignore[no-untyped-def]
+    """``losses.actor_loss`` in float32, returning the pre-tanh log-probability (what alpha's update reads) instead."""
+    actions, log_prob = actor.action_log_prob(observations)
+    min_q = critic.q_values(observations, actions).min(dim=0).values
+    loss = ((ent_coef * log_prob - min_q) * weights).sum() / weight_sum
+    return loss, (log_prob + th.log(1 - actions**2 + TANH_EPSILON).sum(dim=1)).detach()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="Go1JoystickFlatTerrain-v1")
+    parser.add_argument("--backend", default="envpool")
+    parser.add_argument("--minutes", type=float, default=10.0)
+    parser.add_argument("--every", type=int, default=400, help="iterations (env steps of all envs) between rows")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--params", nargs="*", default=[], help="overrides of the entry, as key=value (Python literals)")
+    parser.add_argument("--gaussian-entropy", action="store_true")
+    parser.add_argument("--log-folder", default="/tmp/action_saturation", help="where the zoo writes the run's config")
+    args = parser.parse_args()
+
+    th.set_num_threads(1)  # one core for the updates, the other for envpool's thread
+
+    if args.gaussian_entropy:
+        sb3_cgac.cgac.actor_loss = gaussian_entropy_actor_loss  # type: ignore[assignment]
+    overrides = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.params)}
+    model, manager = build_model(
+        "cgac",
+        args.env,
+        seed=args.seed,
+        backend=args.backend,
+        backend_kwargs=dict(num_threads=1),
+        log_folder=args.log_folder,
+        hyperparams=overrides,
+    )
+    assert isinstance(model, CGAC)
+    model.set_logger(configure(None, []))
+    print(
+        "| steps | seconds | std | abs(a) > 0.9 | abs(a) > 0.99 | abs(pre-tanh mean) | alpha | entropy | target | "
+        "episode length | return |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    start = time.perf_counter()
+    while time.perf_counter() - start < args.minutes * 60:
+        model.learn(model.n_envs * args.every, reset_num_timesteps=False, callback=manager.callbacks)
+        observations, _ = model.policy.obs_to_tensor(model._last_obs)  # type: ignore[arg-type]
+        with th.no_grad():
+            mean, log_std = model.actor.get_action_dist_params(observations)
+        actions = th.tanh(mean).abs()
+        logged = model.logger.name_to_value
+        episodes = list(model.ep_info_buffer or [])
+        length = np.mean([episode["l"] for episode in episodes]) if episodes else np.nan
+        episode_return = np.mean([episode["r"] for episode in episodes]) if episodes else np.nan
+        print(
+            f"| {model.num_timesteps} | {time.perf_counter() - start:.0f} | {log_std.exp().mean():.3f} "
+            f"| {(actions > 0.9).float().mean():.2f} | {(actions > 0.99).float().mean():.2f} | {mean.abs().mean():.2f} "
+            f"| {logged.get('train/ent_coef', np.nan):.2g} | {logged.get('train/entropy', np.nan):.1f} "
+            f"| {logged.get('train/target_entropy', np.nan):.0f} | {length:.0f} | {episode_return:.3g} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
