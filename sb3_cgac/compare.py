@@ -11,7 +11,8 @@ and other files can be added by name (``ppo_parallel`` reads ``hyperparams/ppo_p
 algorithm is the part of the name before ``_``; ``rsl_ppo`` trains rsl_rl's PPO, extra ``rsl_rl``). Models are
 built exactly as ``python -m sb3_cgac.train`` builds them. Every (run, seed) pair trains in its own process with
 one torch thread and one envpool thread, ``--jobs`` of them at once, so that two runs share a 2-core machine evenly.
-Finished pairs are skipped when the command runs again: a long comparison can be split over several calls.
+Finished pairs are skipped when the command runs again: a long comparison can be split over several calls. When a pair
+fails, no other starts, the running ones finish, and the command ends with the failure.
 
 The budget is env steps (``--steps``) or training wall-clock minutes (``--minutes``; evaluation time is not counted,
 and the entries' ``n_timesteps`` do not stop a run early, though schedules follow them). Evaluations are
@@ -31,6 +32,7 @@ episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``).
 
 import argparse
 import json
+import signal
 import subprocess
 import sys
 import tempfile
@@ -275,6 +277,20 @@ def progress_of(out: Path, run: str, seed: int, minutes: bool) -> float:
         return 0.0
 
 
+def describe_exit(returncode: int) -> str:
+    """How a pair's process ended, in words: a negative return code is the signal that killed it."""
+    if returncode >= 0:
+        return f"exit code {returncode}"
+    try:
+        name = signal.Signals(-returncode).name
+    except ValueError:
+        name = f"signal {-returncode}"
+    if -returncode == signal.SIGKILL:
+        # envpool's ports of MuJoCo Playground's tasks hold 40-90 MB per env: two runs of a few hundred envs fill 24 GiB
+        return f"killed by {name}, most often the kernel's out-of-memory killer: fewer envs or fewer --jobs"
+    return f"killed by {name}"
+
+
 def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], references: tuple[str, ...]) -> None:
     """Train every (run, seed) pair not finished yet, ``args.jobs`` at a time, then write the outputs."""
     from tqdm import tqdm
@@ -289,23 +305,40 @@ def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], re
     finished = 0
     quiet = not sys.stderr.isatty()
     bar_args = dict(unit="s" if args.minutes else "step", unit_scale=True, mininterval=60 if quiet else 0.1)
-    with tqdm(total=len(pending) * budget, **bar_args) as bar:
-        while pending or running:
-            while pending and len(running) < args.jobs:
-                run, seed = pending.pop(0)
-                running[(run, seed)] = launch(args, run, seed, runs[run])
-            time.sleep(2)
-            for (run, seed), process in list(running.items()):
-                if process.poll() is None:
-                    continue
-                del running[(run, seed)]
-                if process.returncode != 0:
-                    log = run_paths(out, run, seed)[2].read_text()[-3000:]
-                    raise RuntimeError(f"{run} seed {seed} failed (exit code {process.returncode}):\n{log}")
-                finished += 1
-            used = finished * budget + sum(min(progress_of(out, *pair, bool(args.minutes)), budget) for pair in running)
-            bar.update(used - bar.n)
-            bar.set_postfix_str(", ".join(f"{run} s{seed}" for run, seed in running), refresh=False)
+    failures: list[str] = []
+    # After a failure no new pair starts and the running ones finish (their work is kept, as make does); if this
+    # process itself stops (Ctrl-C), the pairs it started stop with it instead of running on unseen
+    try:
+        with tqdm(total=len(pending) * budget, **bar_args) as bar:
+            while running or (pending and not failures):
+                while pending and not failures and len(running) < args.jobs:
+                    run, seed = pending.pop(0)
+                    running[(run, seed)] = launch(args, run, seed, runs[run])
+                time.sleep(2)
+                for (run, seed), process in list(running.items()):
+                    if process.poll() is None:
+                        continue
+                    del running[(run, seed)]
+                    if process.returncode != 0:
+                        log = run_paths(out, run, seed)[2].read_text()[-3000:]
+                        failures.append(f"{run} seed {seed} failed ({describe_exit(process.returncode)}):\n{log}")
+                        waiting = f"; waiting for {len(running)} running pair(s), starting no other" if running else ""
+                        print(f"{run} seed {seed} failed ({describe_exit(process.returncode)}){waiting}.", flush=True)
+                        continue
+                    finished += 1
+                used = finished * budget + sum(min(progress_of(out, *pair, bool(args.minutes)), budget) for pair in running)
+                bar.update(used - bar.n)
+                bar.set_postfix_str(", ".join(f"{run} s{seed}" for run, seed in running), refresh=False)
+    finally:
+        for process in running.values():
+            process.terminate()
+        for process in running.values():
+            try:
+                process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+    if failures:
+        raise RuntimeError("\n".join(failures))
     summarise(out, list(runs), args.first_seed + args.seeds, args.threshold, references)
 
 

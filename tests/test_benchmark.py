@@ -1,5 +1,6 @@
 """benchmarks/throughput.py runs end to end on a tiny budget and prints a complete table (timings are not asserted)."""
 
+import os
 import pathlib
 import subprocess
 import sys
@@ -105,3 +106,23 @@ def test_data_parallel_table(tmp_path):
     assert "| 0 | 1 process x 2 threads | 300,000 | 3,000 | 250 | 250 (300,000) |" in result.stdout
     assert "steps/s ratio (ranks / one process), per seed: 1.33; mean 1.33" in result.stdout
     assert (tmp_path / "summary.md").read_text().strip() == result.stdout.strip()
+
+
+def test_gpu_benchmark_tiny_budget_on_the_cpu(tmp_path):
+    # benchmarks/gpu.sh is run once when a GPU is lent, for minutes: its whole path (the wrapper, the Playground adapter,
+    # CGAC and rsl_rl's PPO, the table) runs here on JAX's CPU backend at 8 envs, so that it does not first fail there
+    pytest.importorskip("mujoco_playground")
+    pytest.importorskip("rsl_rl")
+    command = ["bash", str(ROOT / "benchmarks" / "gpu.sh"), str(tmp_path), "--task", "CartpoleBalance", "--envs", "8",
+               "--learn-envs", "8", "--seconds", "0.5", "--learn-seconds", "2"]  # fmt: skip
+    environment = {**os.environ, "PYTHON": sys.executable}
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=ROOT, env=environment)
+    assert result.returncode == 0 and "exit 0" in result.stdout, (result.stdout + result.stderr)[-3000:]
+    table = (tmp_path / "table.md").read_text()
+    assert "Task: CartpoleBalance (MuJoCo Playground, impl=jax)" in table
+    (row,) = table_rows(table, "8 ")
+    assert float(row[1].replace(",", "")) > 0 and float(row[2].replace(",", "")) > 0  # raw and CGAC steps/s
+    learning = {row[0]: row for row in table_rows(table, "cgac") + table_rows(table, "rsl_ppo")}
+    assert set(learning) == {"cgac", "rsl_ppo"}
+    assert all(int(row[2].replace(",", "")) > 0 for row in learning.values())  # env steps trained
+    assert (tmp_path / "machine.txt").exists() and (tmp_path / "results.json").exists()

@@ -1,7 +1,9 @@
 """The rl_zoo3 integration, driven through the real rl_zoo3 code."""
 
+import argparse
 import csv
 import pathlib
+import signal
 import subprocess
 import sys
 
@@ -225,6 +227,54 @@ def test_compare_script_tiny_budget(tmp_path):
     assert more.returncode == 0 and "0 of 1 (run, seed) pairs already done" in more.stdout, more.stderr[-3000:]
     assert (out / "runs" / "cgac_seed2.csv").exists() and not (out / "runs" / "cgac_seed1.csv").exists()
     assert "| cgac | 2 |" in (out / "summary.md").read_text()
+
+
+def fake_launches(monkeypatch, scripts):
+    """compare.launch replaced by shell scripts, one per (run, seed), which may write the pair's "done" file."""
+    from sb3_cgac import compare
+
+    launched = []
+
+    def launch(args, run, seed, spec):
+        _, done_path, log_path = compare.run_paths(pathlib.Path(args.out), run, seed)
+        command = ["bash", "-c", scripts[run].format(done=done_path)]
+        launched.append(subprocess.Popen(command, stdout=log_path.open("w"), stderr=subprocess.STDOUT))
+        return launched[-1]
+
+    monkeypatch.setattr(compare, "launch", launch)
+    return launched
+
+
+def test_compare_a_failed_pair_lets_the_running_ones_finish(tmp_path, monkeypatch):
+    from sb3_cgac.compare import run_comparison
+
+    scripts = {"ok": "sleep 4; echo done > {done}", "oom": "echo training; kill -9 $$", "later": "echo > {done}"}
+    fake_launches(monkeypatch, scripts)
+    args = argparse.Namespace(out=str(tmp_path), first_seed=0, seeds=1, minutes=0, steps=100, jobs=2)
+    with pytest.raises(RuntimeError, match=r"oom seed 0 failed \(killed by SIGKILL, most often the kernel's out-of-memory"):
+        run_comparison(args, {run: {} for run in scripts}, references=())
+    assert (tmp_path / "runs" / "ok_seed0.json").read_text() == "done\n"  # it ran to its end after the failure
+    assert not (tmp_path / "runs" / "later_seed0.json").exists()  # and no pair started after it
+
+
+def test_compare_stopped_stops_its_pairs(tmp_path, monkeypatch):
+    from sb3_cgac import compare
+
+    launched = fake_launches(monkeypatch, {"long": "sleep 60"})
+
+    sleep, calls = compare.time.sleep, []
+
+    def interrupted(seconds):  # Ctrl-C in compare's first wait (subprocess's own waits sleep as usual)
+        calls.append(seconds)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        sleep(seconds)
+
+    monkeypatch.setattr(compare.time, "sleep", interrupted)
+    args = argparse.Namespace(out=str(tmp_path), first_seed=0, seeds=1, minutes=0, steps=100, jobs=1)
+    with pytest.raises(KeyboardInterrupt):
+        compare.run_comparison(args, {"long": {}}, references=())
+    assert len(launched) == 1 and launched[0].returncode == -signal.SIGTERM
 
 
 def test_compare_records_train_stats(tmp_path):
