@@ -9,7 +9,10 @@ GPU machine; on a CPU it runs small (a check of the script, not a measurement):
 It writes ``table.md`` (and ``results.json``) into ``--out``:
 - raw: the simulator's steps/s with random actions, through the adapter (torch tensors in and out by DLPack), at each
   ``--envs``;
-- cgac: CGAC's end-to-end env steps/s with its defaults for the device, at each ``--envs``, after a warm-up;
+- cgac: CGAC's end-to-end env steps/s with its defaults for the device, at each ``--envs``, after a warm-up; then,
+  over ``--split-seconds`` more with the device synchronised around each phase (so not part of the rate), the split of
+  its wall-clock between the simulator's step, the rest of the collection (sampling, normalisation, the window),
+  the updates and everything else: where CUDA graphs of the collection could pay;
 - learning: ``--learn-seconds`` of training at ``--learn-envs`` envs of CGAC (defaults) and of rsl_rl's PPO
   (``RslPPO``, rsl_rl's defaults: the settings of Playground's locomotion tasks), each followed by a deterministic
   evaluation of one episode on every env; their env steps/s, and the ratio of CGAC's steps/s to the raw simulator's.
@@ -55,6 +58,51 @@ class StopAfter(BaseCallback):
 def synchronize() -> None:
     if th.cuda.is_available():
         th.cuda.synchronize()
+
+
+class PhaseTimer:
+    """Wall-clock inside a function, with the device synchronised before and after each call."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+
+    def wrap(self, function: Any) -> Any:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            synchronize()
+            start = time.perf_counter()
+            result = function(*args, **kwargs)
+            synchronize()
+            self.seconds += time.perf_counter() - start
+            return result
+
+        return timed
+
+
+def phase_split(model: CGAC, seconds: float) -> dict[str, float]:
+    """Shares of CGAC's wall-clock: simulator step, the rest of the collection, updates, everything else."""
+    env = model.get_env()
+    assert isinstance(env, TorchVecEnv)
+    timers = {name: PhaseTimer() for name in ("env", "collection", "updates")}
+    originals = env.step_tensors, model.collect_rollouts, model.train
+    env.step_tensors = timers["env"].wrap(env.step_tensors)  # type: ignore[method-assign]
+    model.collect_rollouts = timers["collection"].wrap(model.collect_rollouts)  # type: ignore[method-assign]
+    model.train = timers["updates"].wrap(model.train)  # type: ignore[method-assign]
+    try:
+        synchronize()
+        start = time.perf_counter()
+        model.learn(10**12, callback=StopAfter(seconds), reset_num_timesteps=False)
+        synchronize()
+        total = time.perf_counter() - start
+    finally:
+        del env.step_tensors, model.collect_rollouts, model.train  # the class's methods again
+    assert (env.step_tensors, model.collect_rollouts, model.train) == originals
+    env_s, collection_s, updates_s = (timers[name].seconds for name in ("env", "collection", "updates"))
+    return {
+        "env": env_s / total,
+        "collection": (collection_s - env_s) / total,
+        "updates": updates_s / total,
+        "else": (total - collection_s - updates_s) / total,
+    }
 
 
 def playground(args: argparse.Namespace, n_envs: int, seed: int, random_first_episode: bool = True) -> TorchVecEnv:
@@ -127,13 +175,15 @@ def main() -> None:
     parser.add_argument("--learn-envs", type=int, default=4096)
     parser.add_argument("--seconds", type=float, default=15.0, help="timed seconds of each throughput measurement")
     parser.add_argument("--learn-seconds", type=float, default=180.0)
+    parser.add_argument("--split-seconds", type=float, default=5.0, help="seconds of CGAC's wall-clock split per --envs")
     parser.add_argument("--impl", default="jax", help="MuJoCo's JAX implementation: jax (MJX) or warp")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     args.device = "cuda" if th.cuda.is_available() else "cpu"
     args.env_kwargs = {"impl": args.impl}
     args.out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, Any] = {"machine": machine(args.device), "task": args.task, "raw": {}, "cgac": {}, "learning": {}}
+    results: dict[str, Any] = {"machine": machine(args.device), "task": args.task, "raw": {}, "cgac": {}, "split": {}}
+    results["learning"] = {}
 
     def save() -> None:
         (args.out / "results.json").write_text(json.dumps(results, indent=1))
@@ -147,13 +197,17 @@ def main() -> None:
             continue  # measured by the learning run below
         model = build("cgac", n_envs, args)
         results["cgac"][n_envs] = train_rate(model, args.seconds, warmup_steps=40 * n_envs)
-        print(f"cgac {n_envs}: {results['cgac'][n_envs]:,.0f} steps/s", flush=True)
+        assert isinstance(model, CGAC)
+        results["split"][n_envs] = phase_split(model, args.split_seconds)
+        print(f"cgac {n_envs}: {results['cgac'][n_envs]:,.0f} steps/s, split {results['split'][n_envs]}", flush=True)
         save()
         del model
     for algo in ("cgac", "rsl_ppo"):
         model = build(algo, args.learn_envs, args)
         rate = train_rate(model, args.learn_seconds, warmup_steps=args.learn_envs * 40)
         final = evaluate(model, args, args.learn_envs)
+        if isinstance(model, CGAC):  # after the evaluation: the learning run's steps and return are the budget's
+            results["split"][args.learn_envs] = phase_split(model, args.split_seconds)
         results["learning"][algo] = {"steps_per_s": rate, "steps": model.num_timesteps, "return": final}
         if algo == "cgac":
             results["cgac"][args.learn_envs] = rate
@@ -166,11 +220,16 @@ def main() -> None:
 
 def table(results: dict[str, Any], args: argparse.Namespace) -> str:
     lines = [f"Machine: {results['machine']}", f"Task: {results['task']} (MuJoCo Playground, impl={args.impl})", ""]
-    lines += ["| envs | raw simulator steps/s | CGAC end-to-end steps/s | CGAC / raw |", "| --- | --- | --- | --- |"]
+    lines += [
+        "| envs | raw simulator steps/s | CGAC end-to-end steps/s | CGAC / raw | CGAC's time: simulator / collection / "
+        "updates / else |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for n_envs in args.envs:
-        raw, cgac = results["raw"].get(n_envs), results["cgac"].get(n_envs)
+        raw, cgac, split = results["raw"].get(n_envs), results["cgac"].get(n_envs), results["split"].get(n_envs)
         ratio = f"{cgac / raw:.2f}" if raw and cgac else "-"
-        lines.append(f"| {n_envs:,} | {raw or 0:,.0f} | {cgac or 0:,.0f} | {ratio} |")
+        shares = " / ".join(f"{split[phase]:.0%}" for phase in ("env", "collection", "updates", "else")) if split else "-"
+        lines.append(f"| {n_envs:,} | {raw or 0:,.0f} | {cgac or 0:,.0f} | {ratio} | {shares} |")
     lines += [
         "",
         f"Learning: {args.learn_seconds:.0f} s of training at {args.learn_envs:,} envs (after a warm-up of 40 steps per "

@@ -122,6 +122,8 @@ def test_gpu_benchmark_tiny_budget_on_the_cpu(tmp_path):
     assert "Task: CartpoleBalance (MuJoCo Playground, impl=jax)" in table
     (row,) = table_rows(table, "8 ")
     assert float(row[1].replace(",", "")) > 0 and float(row[2].replace(",", "")) > 0  # raw and CGAC steps/s
+    shares = [float(share.strip(" %")) for share in row[4].split("/")]  # simulator / collection / updates / else
+    assert len(shares) == 4 and min(shares[:3]) > 0 and sum(shares) == pytest.approx(100, abs=2)
     learning = {row[0]: row for row in table_rows(table, "cgac") + table_rows(table, "rsl_ppo")}
     assert set(learning) == {"cgac", "rsl_ppo"}
     assert all(int(row[2].replace(",", "")) > 0 for row in learning.values())  # env steps trained
