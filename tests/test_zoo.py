@@ -333,6 +333,18 @@ def test_compare_success_rate(tmp_path):
     assert "final success rate" in (out / "summary.md").read_text()
 
 
+@pytest.mark.parametrize("variant", [[], ["--gaussian-entropy"]])
+def test_action_saturation_script_tiny_budget(tmp_path, variant):
+    command = [sys.executable, str(ROOT / "experiments" / "action_saturation.py"), "--env", "Pendulum-v1", "--backend",
+               "dummy", "--minutes", "0.001", "--every", "12", "--params", "learning_rate=0.001",
+               "--log-folder", str(tmp_path), *variant]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    (row,) = [line for line in result.stdout.splitlines() if line.startswith("| 768 |")]  # 12 iterations of 64 envs
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    assert len(cells) == 11 and 0.0 <= float(cells[3]) <= 1.0 and float(cells[6]) > 0  # share beyond 0.9, alpha
+
+
 def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
