@@ -34,6 +34,7 @@ from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
+from timing import PhaseTimer  # benchmarks/timing.py
 
 
 class StopAfter(BaseCallback):
@@ -58,24 +59,6 @@ class StopAfter(BaseCallback):
 def synchronize() -> None:
     if th.cuda.is_available():
         th.cuda.synchronize()
-
-
-class PhaseTimer:
-    """Wall-clock inside a function, with the device synchronised before and after each call."""
-
-    def __init__(self) -> None:
-        self.seconds = 0.0
-
-    def wrap(self, function: Any) -> Any:
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            synchronize()
-            start = time.perf_counter()
-            result = function(*args, **kwargs)
-            synchronize()
-            self.seconds += time.perf_counter() - start
-            return result
-
-        return timed
 
 
 def phase_split(model: CGAC, seconds: float) -> dict[str, float]:

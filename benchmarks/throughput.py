@@ -17,11 +17,9 @@ same run. Timings are ratios measured here, never asserted anywhere.
 """
 
 import argparse
-import functools
 import tempfile
 import time
 import warnings
-from collections.abc import Callable
 from typing import Any
 
 from sb3_cgac import CGAC
@@ -31,7 +29,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
-from timing import machine, rate, take_turns  # benchmarks/timing.py
+from timing import PhaseTimer, machine, rate, take_turns  # benchmarks/timing.py
 
 LEGEND = """\
 raw: vec-env steps/s with random actions. collect: CGAC collection only (averaged-actor actions and buffer writes),
@@ -75,24 +73,6 @@ class TimedVecEnv(VecEnvWrapper):
         result = self.venv.step_wait()
         self.seconds += time.perf_counter() - start
         return result
-
-
-class Timer:
-    def __init__(self, device: th.device):
-        self.seconds = 0.0
-        self.device = device
-
-    def wrap(self, function: Callable) -> Callable:
-        @functools.wraps(function)
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            start = time.perf_counter()
-            result = function(*args, **kwargs)
-            if self.device.type == "cuda":
-                th.cuda.synchronize()
-            self.seconds += time.perf_counter() - start
-            return result
-
-        return timed
 
 
 class StopAfter(BaseCallback):
@@ -155,7 +135,7 @@ def timed_split(model: CGAC, seconds: float) -> dict[str, float]:
     assert isinstance(timed_env, TimedVecEnv)
     # Fill the window first: updates start once it holds a minibatch
     model.learn(model.buffer_window * timed_env.num_envs, log_interval=10**9)
-    timer_inference, timer_update = Timer(model.device), Timer(model.device)
+    timer_inference, timer_update = PhaseTimer(), PhaseTimer()
     model.actor_avg.sample = timer_inference.wrap(model.actor_avg.sample)  # type: ignore[method-assign]
     model.train = timer_update.wrap(model.train)  # type: ignore[method-assign]
     timed_env.seconds = 0.0

@@ -3,11 +3,13 @@ The timing helpers of the benchmarks: candidates take turns in short chunks, so 
 (+-20% within seconds) hits all of them alike, and the machine is described the same way in every table.
 """
 
+import functools
 import os
 import platform
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 
 def take_turns(
@@ -56,3 +58,29 @@ def machine(threads: int, device: str = "cpu") -> str:
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores ({', '.join(isa) or 'no AVX-512'}), "
         f"torch {th.__version__}, {threads} torch threads, device {device}"
     )
+
+
+class PhaseTimer:
+    """
+    Wall-clock spent inside the functions it wraps, with the CUDA device (if any) synchronised before and after each
+    call, so that kernels queued by other code count where they run: a split of a run's time, not a rate.
+    """
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+
+    def wrap(self, function: Callable) -> Callable:
+        import torch as th
+
+        synchronize = th.cuda.synchronize if th.cuda.is_available() else lambda: None
+
+        @functools.wraps(function)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            synchronize()
+            start = time.perf_counter()
+            result = function(*args, **kwargs)
+            synchronize()
+            self.seconds += time.perf_counter() - start
+            return result
+
+        return timed
