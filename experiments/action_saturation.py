@@ -1,7 +1,8 @@
 """
 How saturated CGAC's actions become while an entry trains: every ``--every`` iterations, the actor's std, the share of
 deterministic actions ``tanh(mean)`` beyond 0.9 and 0.99 in magnitude on the envs' current observations, the mean
-magnitude of the pre-tanh means, alpha, the entropy and its target, and the training episodes' mean length and return::
+magnitude of the pre-tanh means, alpha, the entropy and its target, and the training episodes' mean length and return;
+at the end, per action dimension, the mean deterministic action, its share beyond 0.99 and the actor's std::
 
     python experiments/action_saturation.py --env Go1JoystickFlatTerrain-v1 --minutes 10
     python experiments/action_saturation.py --env MuJoCoPlayground/LeapCubeReorient-v1 --params learning_rate=0.0003
@@ -87,6 +88,12 @@ def main() -> None:
             f"| {logged.get('train/target_entropy', np.nan):.0f} | {length:.0f} | {episode_return:.3g} |",
             flush=True,
         )
+    # Which dimensions saturate, and to which side (the last row's observations)
+    print("\n| dimension | mean action | abs(a) > 0.99 | std |\n| --- | --- | --- | --- |")
+    stds = log_std.exp().expand_as(mean).mean(dim=0)
+    per_dimension = zip(th.tanh(mean).mean(dim=0), (actions > 0.99).float().mean(dim=0), stds, strict=True)
+    for dimension, (mean_action, saturated, std) in enumerate(per_dimension):
+        print(f"| {dimension} | {mean_action:+.2f} | {saturated:.2f} | {std:.3f} |")
 
 
 if __name__ == "__main__":

@@ -343,6 +343,9 @@ def test_action_saturation_script_tiny_budget(tmp_path, variant):
     (row,) = [line for line in result.stdout.splitlines() if line.startswith("| 768 |")]  # 12 iterations of 64 envs
     cells = [cell.strip() for cell in row.strip("|").split("|")]
     assert len(cells) == 11 and 0.0 <= float(cells[3]) <= 1.0 and float(cells[6]) > 0  # share beyond 0.9, alpha
+    (dimension,) = [line for line in result.stdout.splitlines() if line.startswith("| 0 |")]  # Pendulum: one action
+    cells = [cell.strip() for cell in dimension.strip("|").split("|")]
+    assert len(cells) == 4 and -1.0 <= float(cells[1]) <= 1.0 and 0.0 <= float(cells[2]) <= 1.0 and float(cells[3]) > 0
 
 
 def test_ablations_script_tiny_budget(tmp_path):
