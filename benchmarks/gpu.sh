@@ -2,15 +2,17 @@
 # The GPU-simulator benchmark, one command for one H100/H200 (at most about 8 minutes): MuJoCo Playground on MJX through
 # sb3_cgac's torch-native path, raw simulator steps/s, CGAC's end-to-end steps/s at 1,024, 4,096 and 16,384 envs, and
 # 3 minutes of learning of CGAC and of rsl_rl's PPO (benchmarks/gpu_playground.py). The table is OUT_DIR/table.md.
-# The GPU machine reaches no registry: first download the wheels here (benchmarks/gpu_wheels.sh, 43 MB), then with the
-# device tool: run(command="bash benchmarks/gpu.sh $OUT", carry=[".whl"], timeout_s=600).
+# The GPU machine reaches no registry: first download the wheels here (benchmarks/gpu_wheels.sh, 53 MB with Go1's
+# models), then with the device tool: run(command="bash benchmarks/gpu.sh $OUT", carry=[".whl"], timeout_s=600).
+# The Go1 joystick instead of CheetahRun: append --task Go1JoystickFlatTerrain (not timed on a GPU yet).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-gpu-results}
 shift || true
 mkdir -p "$out"
 python=${PYTHON:-python3}
-if [ -d .whl ]; then
+# The carried wheels, where their packages are missing (the GPU machine; not a machine that has them installed)
+if [ -d .whl ] && ! "$python" -c "import mujoco_playground, rsl_rl, stable_baselines3" 2>/dev/null; then
     "$python" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
     export PYTHONPATH=/tmp/site
 fi
@@ -20,5 +22,7 @@ export XLA_PYTHON_CLIENT_PREALLOCATE=false
 { nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader; nproc
   "$python" -c "import torch, jax, mujoco; print('torch', torch.__version__, 'jax', jax.__version__, jax.devices(), 'mujoco', mujoco.__version__)"
 } 2>&1 | tee "$out/machine.txt"
-timeout 540 "$python" benchmarks/gpu_playground.py --out "$out" "$@" 2>&1 | tee "$out/log.txt"
+menagerie=()
+[ -d .whl/menagerie ] && menagerie=(--menagerie .whl/menagerie)  # robot tasks: --task Go1JoystickFlatTerrain
+timeout 540 "$python" benchmarks/gpu_playground.py --out "$out" "${menagerie[@]}" "$@" 2>&1 | tee "$out/log.txt"
 echo "exit ${PIPESTATUS[0]}"

