@@ -2,7 +2,8 @@
 # Downloads (here, where pip reaches the registry) the wheels that benchmarks/gpu.sh installs on the GPU machine, which
 # reaches no registry and has Python 3.12, torch 2.11, JAX 0.11 with its CUDA plugin, flax, optax, etils, lxml, scipy,
 # tqdm, cloudpickle and pyyaml. MuJoCo Warp's wheel (warp-lang, about 150 MB) does not fit the 64 MiB that travels with
-# the working tree: the benchmark uses MJX (impl="jax"). Go1's models (10 MB) travel in .whl/menagerie. Run from the repository root:
+# the working tree: the benchmark uses MJX (impl="jax"). Go1's models (10 MB) travel in .whl/menagerie. Run from the
+# repository root:
 #     echo /.whl/ >> .git/info/exclude; bash benchmarks/gpu_wheels.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
