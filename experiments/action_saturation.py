@@ -2,7 +2,8 @@
 How saturated CGAC's actions become while an entry trains: every ``--every`` iterations, the actor's std, the share of
 deterministic actions ``tanh(mean)`` beyond 0.9 and 0.99 in magnitude on the envs' current observations, the mean
 magnitude of the pre-tanh means, alpha, the entropy and its target, and the training episodes' mean length and return;
-at the end, per action dimension, the mean deterministic action, its share beyond 0.99 and the actor's std::
+at the end, per action dimension, the mean deterministic action, its share beyond 0.99, the actor's std and the
+critics' gradient at the deterministic actions (dQ/da, and dQ/du before the tanh)::
 
     python experiments/action_saturation.py --env Go1JoystickFlatTerrain-v1 --minutes 10
     python experiments/action_saturation.py --env MuJoCoPlayground/LeapCubeReorient-v1 --params learning_rate=0.0003
@@ -88,12 +89,19 @@ def main() -> None:
             f"| {logged.get('train/target_entropy', np.nan):.0f} | {length:.0f} | {episode_return:.3g} |",
             flush=True,
         )
-    # Which dimensions saturate, and to which side (the last row's observations)
-    print("\n| dimension | mean action | abs(a) > 0.99 | std |\n| --- | --- | --- | --- |")
+    # Which dimensions saturate, to which side, and how hard the critics pull them there: the gradient of the minimum
+    # of the critics at the deterministic actions (the actor loss's, paper Eq. 7, without the entropy term), dQ/da, and
+    # through the tanh, dQ/du (the last row's observations)
+    deterministic = th.tanh(mean).requires_grad_(True)
+    min_q = model.critic.q_values(observations, deterministic).min(dim=0).values
+    (dq_da,) = th.autograd.grad(min_q.sum(), deterministic)
+    dq_du = dq_da * (1 - deterministic.detach() ** 2)
+    print("\n| dimension | mean action | abs(a) > 0.99 | std | dQ/da | dQ/du |\n| --- | --- | --- | --- | --- | --- |")
     stds = log_std.exp().expand_as(mean).mean(dim=0)
-    per_dimension = zip(th.tanh(mean).mean(dim=0), (actions > 0.99).float().mean(dim=0), stds, strict=True)
-    for dimension, (mean_action, saturated, std) in enumerate(per_dimension):
-        print(f"| {dimension} | {mean_action:+.2f} | {saturated:.2f} | {std:.3f} |")
+    saturated = (actions > 0.99).float().mean(dim=0)
+    columns = (deterministic.detach().mean(dim=0), saturated, stds, dq_da.mean(dim=0), dq_du.mean(dim=0))
+    for dimension, (mean_action, share, std, da, du) in enumerate(zip(*columns, strict=True)):
+        print(f"| {dimension} | {mean_action:+.2f} | {share:.2f} | {std:.3f} | {da:+.3g} | {du:+.3g} |")
 
 
 if __name__ == "__main__":

@@ -345,7 +345,8 @@ def test_action_saturation_script_tiny_budget(tmp_path, variant):
     assert len(cells) == 11 and 0.0 <= float(cells[3]) <= 1.0 and float(cells[6]) > 0  # share beyond 0.9, alpha
     (dimension,) = [line for line in result.stdout.splitlines() if line.startswith("| 0 |")]  # Pendulum: one action
     cells = [cell.strip() for cell in dimension.strip("|").split("|")]
-    assert len(cells) == 4 and -1.0 <= float(cells[1]) <= 1.0 and 0.0 <= float(cells[2]) <= 1.0 and float(cells[3]) > 0
+    assert len(cells) == 6 and -1.0 <= float(cells[1]) <= 1.0 and 0.0 <= float(cells[2]) <= 1.0 and float(cells[3]) > 0
+    assert np.isfinite(float(cells[4])) and abs(float(cells[5])) <= abs(float(cells[4]))  # dQ/du = dQ/da (1 - a^2)
 
 
 def test_ablations_script_tiny_budget(tmp_path):
