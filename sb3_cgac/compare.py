@@ -320,10 +320,11 @@ def run_comparison(args: argparse.Namespace, runs: dict[str, dict[str, Any]], re
                         continue
                     del running[(run, seed)]
                     if process.returncode != 0:
-                        log = run_paths(out, run, seed)[2].read_text()[-3000:]
-                        failures.append(f"{run} seed {seed} failed ({describe_exit(process.returncode)}):\n{log}")
+                        failure = f"{run} seed {seed} failed ({describe_exit(process.returncode)})"
+                        failures.append(f"{failure}:\n{run_paths(out, run, seed)[2].read_text()[-3000:]}")
                         waiting = f"; waiting for {len(running)} running pair(s), starting no other" if running else ""
-                        print(f"{run} seed {seed} failed ({describe_exit(process.returncode)}){waiting}.", flush=True)
+                        print(f"{failure}{waiting}.", flush=True)
+                        bar.total = (finished + len(running)) * budget  # what is left to train: the running pairs
                         continue
                     finished += 1
                 used = finished * budget + sum(min(progress_of(out, *pair, bool(args.minutes)), budget) for pair in running)
