@@ -8,6 +8,12 @@ critics' gradient at the deterministic actions (dQ/da, and dQ/du before the tanh
     python experiments/action_saturation.py --env Go1JoystickFlatTerrain-v1 --minutes 10
     python experiments/action_saturation.py --env MuJoCoPlayground/LeapCubeReorient-v1 --params learning_rate=0.0003
 
+``--probe`` then asks whether the critics' push on each dimension saturated on most observations (or on each one
+named) is right: the critics' minimum Q at the envs' current observations with that dimension set to -1, -0.5, 0, 0.5
+and 1 (the other dimensions deterministic: a change at one step), beside the mean return of whole evaluation episodes
+of the deterministic policy with that dimension held at the same value (one episode per env of an evaluation env
+built as the entry builds it).
+
 ``--gaussian-entropy`` screens an entropy target on the Gaussian before the tanh: alpha's update (paper Eq. 12) reads
 the pre-tanh log-probability, the actor's loss (Eq. 7) is unchanged.
 """
@@ -28,6 +34,9 @@ from sb3_cgac.zoo import build_model  # noqa: E402
 import numpy as np  # noqa: E402
 import torch as th  # noqa: E402
 from stable_baselines3.common.logger import configure  # noqa: E402
+from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization  # noqa: E402
+
+PROBE_VALUES = (-1.0, -0.5, 0.0, 0.5, 1.0)
 
 
 def gaussian_entropy_actor_loss(actor, critic, observations, weights, weight_sum, ent_coef, autocast_dtype=None):  # type: ignore[no-untyped-def]
@@ -36,6 +45,45 @@ def gaussian_entropy_actor_loss(actor, critic, observations, weights, weight_sum
     min_q = critic.q_values(observations, actions).min(dim=0).values
     loss = ((ent_coef * log_prob - min_q) * weights).sum() / weight_sum
     return loss, (log_prob + th.log(1 - actions**2 + TANH_EPSILON).sum(dim=1)).detach()
+
+
+def episode_returns(model: CGAC, env: VecEnv, dimension: int | None, value: float) -> tuple[float, float]:
+    """Mean return and length of the first episode of every env of ``env``, acting with ``predict(deterministic=True)``
+    and, if ``dimension`` is given, that squashed action dimension held at ``value``."""
+    observations = env.reset()
+    returns, lengths = np.zeros(env.num_envs), np.zeros(env.num_envs)
+    running = np.ones(env.num_envs, dtype=bool)
+    while running.any():
+        actions, _ = model.predict(observations, deterministic=True)  # type: ignore[arg-type]
+        if dimension is not None:
+            actions[:, dimension] = model.policy.unscale_action(np.full_like(actions, value))[:, dimension]
+        observations, rewards, dones, _ = env.step(actions)
+        returns += rewards * running
+        lengths += running
+        running &= ~dones
+    return float(returns.mean()), float(lengths.mean())
+
+
+def probe(model: CGAC, manager, observations, dimensions: list[int], n_envs: int) -> None:  # type: ignore[no-untyped-def]
+    """The critics' Q and the real return with one saturated dimension held at each of ``PROBE_VALUES``."""
+    env = manager.create_envs(n_envs, eval_env=True, no_log=True)
+    train_env = model.get_env()
+    if model.get_vec_normalize_env() is not None and train_env is not None:
+        sync_envs_normalization(train_env, env)
+    base_return, base_length = episode_returns(model, env, None, 0.0)
+    print(f"\nDeterministic policy, {n_envs} evaluation episodes: return {base_return:.4g}, length {base_length:.0f}")
+    print("\n| dimension | held at | critics' min Q (mean) | return (mean) | episode length |")
+    print("| --- | --- | --- | --- | --- |")
+    with th.no_grad():
+        deterministic = model.policy.actor_avg(observations, deterministic=True)
+        for dimension in dimensions:
+            for value in PROBE_VALUES:
+                actions = deterministic.clone()
+                actions[:, dimension] = value
+                q = model.critic.q_values(observations, actions).min(dim=0).values.mean()
+                episode_return, length = episode_returns(model, env, dimension, value)
+                print(f"| {dimension} | {value:+.1f} | {q:.4g} | {episode_return:.4g} | {length:.0f} |", flush=True)
+    env.close()
 
 
 def main() -> None:
@@ -47,6 +95,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--params", nargs="*", default=[], help="overrides of the entry, as key=value (Python literals)")
     parser.add_argument("--gaussian-entropy", action="store_true")
+    parser.add_argument(
+        "--probe", nargs="*", type=int, help="hold these action dimensions (none named: the saturated ones) at fixed values"
+    )
+    parser.add_argument("--probe-envs", type=int, default=64, help="evaluation envs (one episode each) per probe")
     parser.add_argument("--log-folder", default="/tmp/action_saturation", help="where the zoo writes the run's config")
     args = parser.parse_args()
 
@@ -102,6 +154,9 @@ def main() -> None:
     columns = (deterministic.detach().mean(dim=0), saturated, stds, dq_da.mean(dim=0), dq_du.mean(dim=0))
     for dimension, (mean_action, share, std, da, du) in enumerate(zip(*columns, strict=True)):
         print(f"| {dimension} | {mean_action:+.2f} | {share:.2f} | {std:.3f} | {da:+.3g} | {du:+.3g} |")
+    if args.probe is not None:
+        dimensions = args.probe or [int(d) for d in th.nonzero(saturated >= 0.9).flatten()]
+        probe(model, manager, observations, dimensions, args.probe_envs)
 
 
 if __name__ == "__main__":

@@ -119,3 +119,22 @@ def test_use_menagerie_takes_a_folder(tmp_path, monkeypatch):
     assert use_menagerie(tmp_path) == tmp_path.resolve() and Path(mjx_env.MENAGERIE_PATH) == tmp_path.resolve()
     with pytest.raises(FileNotFoundError, match="not a folder"):
         use_menagerie(tmp_path / "missing")
+
+
+def test_a_task_is_built_again_from_another_menagerie(tmp_path, monkeypatch):
+    # The compiled tasks are cached per process: one loaded from another menagerie folder must not be the cached one
+    monkeypatch.setattr(mjx_env, "MENAGERIE_PATH", mjx_env.MENAGERIE_PATH)  # restored after the test
+    loaded_from = []
+    task = registry.load("CheetahRun", config_overrides={"impl": "jax"})
+
+    def load(env_name, config_overrides=None):
+        loaded_from.append(Path(mjx_env.MENAGERIE_PATH))
+        return task
+
+    monkeypatch.setattr(registry, "load", load)
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir(), second.mkdir()
+    for folder in (first, second, first):
+        env = PlaygroundVectorEnv("CheetahRun", 3, menagerie_path=folder)
+        assert env.single_action_space.shape == (task.action_size,)
+    assert loaded_from == [first.resolve(), second.resolve()]

@@ -333,7 +333,7 @@ def test_compare_success_rate(tmp_path):
     assert "final success rate" in (out / "summary.md").read_text()
 
 
-@pytest.mark.parametrize("variant", [[], ["--gaussian-entropy"]])
+@pytest.mark.parametrize("variant", [[], ["--gaussian-entropy"], ["--probe", "0", "--probe-envs", "2"]])
 def test_action_saturation_script_tiny_budget(tmp_path, variant):
     command = [sys.executable, str(ROOT / "experiments" / "action_saturation.py"), "--env", "Pendulum-v1", "--backend",
                "dummy", "--minutes", "0.001", "--every", "12", "--params", "learning_rate=0.001",
@@ -343,10 +343,13 @@ def test_action_saturation_script_tiny_budget(tmp_path, variant):
     (row,) = [line for line in result.stdout.splitlines() if line.startswith("| 768 |")]  # 12 iterations of 64 envs
     cells = [cell.strip() for cell in row.strip("|").split("|")]
     assert len(cells) == 11 and 0.0 <= float(cells[3]) <= 1.0 and float(cells[6]) > 0  # share beyond 0.9, alpha
-    (dimension,) = [line for line in result.stdout.splitlines() if line.startswith("| 0 |")]  # Pendulum: one action
-    cells = [cell.strip() for cell in dimension.strip("|").split("|")]
-    assert len(cells) == 6 and -1.0 <= float(cells[1]) <= 1.0 and 0.0 <= float(cells[2]) <= 1.0 and float(cells[3]) > 0
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in result.stdout.splitlines()]
+    (cells,) = [row for row in rows if row[0] == "0" and len(row) == 6]  # Pendulum: one action
+    assert -1.0 <= float(cells[1]) <= 1.0 and 0.0 <= float(cells[2]) <= 1.0 and float(cells[3]) > 0
     assert np.isfinite(float(cells[4])) and abs(float(cells[5])) <= abs(float(cells[4]))  # dQ/du = dQ/da (1 - a^2)
+    probes = [row for row in rows if row[0] == "0" and len(row) == 5]  # the action held at -1, -0.5, 0, 0.5, 1
+    assert [float(row[1]) for row in probes] == ([-1.0, -0.5, 0.0, 0.5, 1.0] if "--probe" in variant else [])
+    assert all(np.isfinite(float(row[2])) and -3300 < float(row[3]) <= 0 and row[4] == "200" for row in probes)
 
 
 def test_ablations_script_tiny_budget(tmp_path):

@@ -118,10 +118,14 @@ def _space(size: Any) -> spaces.Space:
 
 
 @functools.cache
-def _compiled(env_name: str, num_envs: int, episode_length: int, overrides: tuple[tuple[str, Any], ...]) -> tuple[Any, ...]:
+def _compiled(
+    env_name: str, num_envs: int, episode_length: int, overrides: tuple[tuple[str, Any], ...], menagerie: str
+) -> tuple[Any, ...]:
     """
     The jitted reset, step and partial reset of ``num_envs`` copies of a task, and its observation and action sizes:
     built once per process, so that envs of the same task and size (training and evaluation) share the compilation.
+    ``menagerie``, the folder the robots load from (``mjx_env.MENAGERIE_PATH``, read by ``registry.load``), is part of
+    the key: a task loaded from another folder is built anew.
     """
     env = registry.load(env_name, config_overrides=dict(overrides))
     action_repeat = int(registry.get_default_config(env_name).get("action_repeat", 1))
@@ -184,7 +188,7 @@ class PlaygroundVectorEnv(gym.vector.VectorEnv):
         self.num_envs = num_envs
         self.max_episode_steps = int(episode_length or registry.get_default_config(env_name).episode_length)
         overrides = tuple(sorted({"impl": impl, **(config_overrides or {})}.items()))
-        compiled = _compiled(env_name, num_envs, self.max_episode_steps, overrides)
+        compiled = _compiled(env_name, num_envs, self.max_episode_steps, overrides, str(mjx_env.MENAGERIE_PATH))
         self._reset, self._step, self._reset_some, observation_size, action_size = compiled
         self.single_observation_space = _space(observation_size)
         self.single_action_space = spaces.Box(-1.0, 1.0, (action_size,), np.float32)
