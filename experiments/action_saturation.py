@@ -8,11 +8,11 @@ critics' gradient at the deterministic actions (dQ/da, and dQ/du before the tanh
     python experiments/action_saturation.py --env Go1JoystickFlatTerrain-v1 --minutes 10
     python experiments/action_saturation.py --env MuJoCoPlayground/LeapCubeReorient-v1 --params learning_rate=0.0003
 
-``--probe`` then asks whether the critics' push on each dimension saturated on most observations (or on each one
-named) is right: the critics' minimum Q at the envs' current observations with that dimension set to -1, -0.5, 0, 0.5
-and 1 (the other dimensions deterministic: a change at one step), beside the mean return of whole evaluation episodes
-of the deterministic policy with that dimension held at the same value (one episode per env of an evaluation env
-built as the entry builds it).
+``--probe`` then asks whether the critics' push on each dimension whose deterministic action averages at least 0.5
+in magnitude (or on each one named) is right: the critics' minimum Q at the envs' current observations with that
+dimension set to -1, -0.5, 0, 0.5 and 1 (the other dimensions deterministic: a change at one step), beside the mean
+return of whole evaluation episodes of the deterministic policy with that dimension held at the same value (one
+episode per env of an evaluation env built as the entry builds it).
 
 ``--gaussian-entropy`` screens an entropy target on the Gaussian before the tanh: alpha's update (paper Eq. 12) reads
 the pre-tanh log-probability, the actor's loss (Eq. 7) is unchanged.
@@ -96,7 +96,7 @@ def main() -> None:
     parser.add_argument("--params", nargs="*", default=[], help="overrides of the entry, as key=value (Python literals)")
     parser.add_argument("--gaussian-entropy", action="store_true")
     parser.add_argument(
-        "--probe", nargs="*", type=int, help="hold these action dimensions (none named: the saturated ones) at fixed values"
+        "--probe", nargs="*", type=int, help="hold these action dimensions (none named: the large ones) at fixed values"
     )
     parser.add_argument("--probe-envs", type=int, default=64, help="evaluation envs (one episode each) per probe")
     parser.add_argument("--log-folder", default="/tmp/action_saturation", help="where the zoo writes the run's config")
@@ -155,7 +155,7 @@ def main() -> None:
     for dimension, (mean_action, share, std, da, du) in enumerate(zip(*columns, strict=True)):
         print(f"| {dimension} | {mean_action:+.2f} | {share:.2f} | {std:.3f} | {da:+.3g} | {du:+.3g} |")
     if args.probe is not None:
-        dimensions = args.probe or [int(d) for d in th.nonzero(saturated >= 0.9).flatten()]
+        dimensions = args.probe or [int(d) for d in th.nonzero(actions.mean(dim=0) >= 0.5).flatten()]
         probe(model, manager, observations, dimensions, args.probe_envs)
 
 

@@ -352,6 +352,19 @@ def test_action_saturation_script_tiny_budget(tmp_path, variant):
     assert all(np.isfinite(float(row[2])) and -3300 < float(row[3]) <= 0 and row[4] == "200" for row in probes)
 
 
+@pytest.mark.parametrize("run", ["cgac", "ppo"])
+def test_policy_actions_script_tiny_budget(tmp_path, run):
+    command = [sys.executable, str(ROOT / "experiments" / "policy_actions.py"), "--env", "Pendulum-v1", "--backend",
+               "dummy", "--run", run, "--steps", "200", "--eval-envs", "2", "--log-folder", str(tmp_path)]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "2 evaluation episodes" in result.stdout and "400 steps" in result.stdout  # Pendulum: 200 steps each
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in result.stdout.splitlines()]
+    (cells,) = [row for row in rows if row[0] == "0"]  # Pendulum: one action
+    mean, magnitude, share = float(cells[1]), float(cells[2]), float(cells[3])
+    assert abs(mean) <= magnitude <= 1.0 and 0.0 <= share <= 1.0
+
+
 def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
