@@ -240,6 +240,9 @@ def train(argv: list[str] | None = None) -> None:
         )
     backend = _option_value(argv, ("--vec-env",)) or "dummy"
     argv = _without_option(argv, "--vec-env")
+    env_id = _option_value(argv, ("--env",))
+    if backend == "envpool" and env_id is not None:
+        register_envpool_task(env_id)  # envpool-only ids (Playground's ports): rl_zoo3 looks the id up before building
     if backend in ("dummy", "subproc"):
         argv += ["--vec-env", backend]
     algo = _option_value(argv, ("--algo",)) or "ppo"

@@ -80,6 +80,19 @@ def test_ppo_and_sac_read_our_files(tmp_path, algo):
     assert str(HYPERPARAMS_DIR / f"{algo}.yml") in str(args)
 
 
+def test_train_cli_on_an_envpool_only_task(tmp_path):
+    # Playground's ports exist in envpool only: rl_zoo3 looks the id up in gymnasium's registry before the backend
+    # builds the envs
+    envpool = pytest.importorskip("envpool")
+    env_id = "MuJoCoPlayground/PandaPickCube-v1"
+    if env_id not in envpool.list_all_envs():
+        pytest.skip(f"envpool {envpool.__version__} has no {env_id}")
+    train(["--algo", "cgac", "--env", env_id, "-n", "256", "--vec-env", "envpool", "-params", "n_envs:4",
+           "-f", str(tmp_path), "--seed", "0"])  # fmt: skip
+    name = env_id.replace("/", "-")  # the zoo's folder and file name
+    assert (run_dir(tmp_path, "cgac", name) / f"{name}.zip").exists()
+
+
 def test_envpool_backend_and_enjoy(tmp_path):
     pytest.importorskip("envpool")
     train(["--algo", "cgac", "--env", "Pendulum-v1", "-n", "1280", "--vec-env", "envpool", "-f", str(tmp_path), "--seed", "0"])
