@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The GPU-simulator benchmark, one command for one H100/H200 (at most about 8 minutes): MuJoCo Playground on MJX through
-# sb3_cgac's torch-native path, raw simulator steps/s, CGAC's end-to-end steps/s at 1,024, 4,096 and 16,384 envs, and
-# 3 minutes of learning of CGAC and of rsl_rl's PPO (benchmarks/gpu_playground.py). The table is OUT_DIR/table.md.
+# sb3_cgac's torch-native path, raw simulator steps/s, CGAC's end-to-end steps/s at 1,024, 4,096 and 16,384 envs (CUDA
+# graphs of its updates; eager beside them at 4,096), and 3 minutes of learning of CGAC and of rsl_rl's PPO
+# (benchmarks/gpu_playground.py). The table, OUT_DIR/table.md, is rewritten after each measurement, the 4,096-env ones
+# first: a run cut short keeps them, and a measurement that fails is listed there.
 # The GPU machine reaches no registry: first download the wheels here (benchmarks/gpu_wheels.sh, 53 MB with Go1's
 # models), then with the device tool: run(command="bash benchmarks/gpu.sh $OUT", carry=[".whl"], timeout_s=600).
 # The Go1 joystick instead of CheetahRun: append --task Go1JoystickFlatTerrain (not timed on a GPU yet).

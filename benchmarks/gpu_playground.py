@@ -9,22 +9,29 @@ GPU machine; on a CPU it runs small (a check of the script, not a measurement):
 A robot task such as ``--task Go1JoystickFlatTerrain`` reads its models from ``--menagerie`` (else from envpool's
 asset packages), and its actors read ``state`` only, its critics every key.
 
-It writes ``table.md`` (and ``results.json``) into ``--out``:
-- raw: the simulator's steps/s with random actions, through the adapter (torch tensors in and out by DLPack), at each
-  ``--envs``;
-- cgac: CGAC's end-to-end env steps/s with its defaults for the device, at each ``--envs``, after a warm-up; then,
-  over ``--split-seconds`` more with the device synchronised around each phase (so not part of the rate), the split of
-  its wall-clock between the simulator's step, the rest of the collection (sampling, normalisation, the window),
-  the updates and everything else: where CUDA graphs of the collection could pay;
-- learning: ``--learn-seconds`` of training at ``--learn-envs`` envs of CGAC (defaults) and of rsl_rl's PPO
-  (``RslPPO``, rsl_rl's defaults: the settings of Playground's locomotion tasks), each followed by a deterministic
-  evaluation of one episode on every env; their env steps/s, and the ratio of CGAC's steps/s to the raw simulator's.
+It writes ``table.md`` (and ``results.json``) into ``--out`` after each measurement, so that a run cut short keeps
+what it measured; a measurement that fails is listed there and the others still run. In this order:
+- raw: the simulator's steps/s with random actions, through the adapter (torch tensors in and out by DLPack), at
+  ``--learn-envs``;
+- on CUDA, CGAC's steps/s with eager updates at ``--learn-envs`` (the gain of the graphs; a rate even if they fail);
+- learning: ``--learn-seconds`` of training at ``--learn-envs`` envs of CGAC (its defaults for the device; on CUDA
+  with ``cuda_graphs=True``) and of rsl_rl's PPO (``RslPPO``, rsl_rl's defaults: the settings of Playground's
+  locomotion tasks), each followed by a deterministic evaluation of one episode on every env; their env steps/s (CGAC's
+  is its end-to-end rate at ``--learn-envs``); then, over ``--split-seconds`` more with the device synchronised around
+  each phase (so not part of the rate), the split of CGAC's wall-clock between the simulator's step, the rest of the
+  collection (sampling, normalisation, the window), the updates and everything else: where CUDA graphs of the
+  collection could pay;
+- raw and CGAC (steps/s after a warm-up, and the split) at each other ``--envs``.
 """
 
 import argparse
+import gc
 import json
 import platform
+import sys
 import time
+import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -114,14 +121,15 @@ def raw_rate(args: argparse.Namespace, n_envs: int) -> float:
     return steps * n_envs / (time.perf_counter() - start)
 
 
-def build(algo: str, n_envs: int, args: argparse.Namespace) -> BaseAlgorithm:
+def build(algo: str, n_envs: int, args: argparse.Namespace, cuda_graphs: bool = False) -> BaseAlgorithm:
     env = playground(args, n_envs, seed=0)
     dict_obs = isinstance(env.observation_space, spaces.Dict)
     policy = "MultiInputPolicy" if dict_obs else "MlpPolicy"
     # Playground's robot tasks: the actors read what the robot senses ("state"), the critics everything
     actor_keys = ["state"] if dict_obs and "state" in env.observation_space.spaces else None  # type: ignore[attr-defined]
     if algo == "cgac":
-        return CGAC(policy, env, seed=0, device=args.device, policy_kwargs=dict(actor_keys=actor_keys))
+        kwargs = dict(actor_keys=actor_keys)
+        return CGAC(policy, env, seed=0, device=args.device, cuda_graphs=cuda_graphs, policy_kwargs=kwargs)
     from sb3_cgac.rsl_rl import RslPPO
 
     return RslPPO(policy, env, seed=0, device=args.device, actor_keys=actor_keys)
@@ -157,7 +165,58 @@ def machine(device: str) -> str:
     )
 
 
-def main() -> None:
+def phases(args: argparse.Namespace) -> list[tuple[str, Callable[[dict[str, Any]], None]]]:
+    """
+    The measurements in the order they run: what the issue's targets need first (raw and CGAC at ``--learn-envs``, both
+    learning runs), then the other env counts, so that a run cut short by its time limit still has those.
+    """
+
+    def raw(n_envs: int) -> Callable[[dict[str, Any]], None]:
+        def measure(results: dict[str, Any]) -> None:
+            results["raw"][n_envs] = raw_rate(args, n_envs)
+            print(f"raw {n_envs}: {results['raw'][n_envs]:,.0f} steps/s", flush=True)
+
+        return measure
+
+    def learning(algo: str) -> Callable[[dict[str, Any]], None]:
+        def measure(results: dict[str, Any]) -> None:
+            model = build(algo, args.learn_envs, args, cuda_graphs=args.cuda_graphs)
+            rate = train_rate(model, args.learn_seconds, warmup_steps=args.learn_envs * 40)
+            final = evaluate(model, args, args.learn_envs)
+            results["learning"][algo] = {"steps_per_s": rate, "steps": model.num_timesteps, "return": final}
+            print(f"{algo}: {rate:,.0f} steps/s, {model.num_timesteps:,} steps, return {final:.1f}", flush=True)
+            if isinstance(model, CGAC):  # after the evaluation: the learning run's steps and return are the budget's
+                results["cgac"][args.learn_envs] = rate
+                results["split"][args.learn_envs] = phase_split(model, args.split_seconds)
+
+        return measure
+
+    def throughput(n_envs: int, cuda_graphs: bool) -> Callable[[dict[str, Any]], None]:
+        def measure(results: dict[str, Any]) -> None:
+            model = build("cgac", n_envs, args, cuda_graphs=cuda_graphs)
+            assert isinstance(model, CGAC)
+            rate = train_rate(model, args.seconds, warmup_steps=40 * n_envs)
+            if cuda_graphs != args.cuda_graphs:  # the other update path, for the gain of the graphs
+                results["cgac_eager"][n_envs] = rate
+                print(f"cgac {n_envs}, eager updates: {rate:,.0f} steps/s", flush=True)
+                return
+            results["cgac"][n_envs] = rate
+            results["split"][n_envs] = phase_split(model, args.split_seconds)
+            print(f"cgac {n_envs}: {rate:,.0f} steps/s, split {results['split'][n_envs]}", flush=True)
+
+        return measure
+
+    found: list[tuple[str, Callable[[dict[str, Any]], None]]] = [(f"raw {args.learn_envs}", raw(args.learn_envs))]
+    if args.cuda_graphs:  # first: a rate at --learn-envs even if the graphs fail on this path
+        found.append((f"cgac {args.learn_envs} eager", throughput(args.learn_envs, cuda_graphs=False)))
+    found += [("learning cgac", learning("cgac")), ("learning rsl_ppo", learning("rsl_ppo"))]
+    for n_envs in args.envs:
+        if n_envs != args.learn_envs:
+            found += [(f"raw {n_envs}", raw(n_envs)), (f"cgac {n_envs}", throughput(n_envs, args.cuda_graphs))]
+    return found
+
+
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="CheetahRun", help="a MuJoCo Playground task, e.g. Go1JoystickFlatTerrain")
     parser.add_argument("--menagerie", default=None, help="folder of mujoco_menagerie's robots (see use_menagerie)")
@@ -170,68 +229,56 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     args.device = "cuda" if th.cuda.is_available() else "cpu"
+    args.cuda_graphs = args.device == "cuda"  # CGAC's fast update path on a GPU; the eager one is measured beside it
     args.env_kwargs = {"impl": args.impl, "menagerie_path": args.menagerie}
     args.out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, Any] = {"machine": machine(args.device), "task": args.task, "raw": {}, "cgac": {}, "split": {}}
-    results["learning"] = {}
-
-    def save() -> None:
+    results: dict[str, Any] = {"machine": machine(args.device), "task": args.task, "errors": []}
+    results.update({key: {} for key in ("raw", "cgac", "cgac_eager", "split", "learning")})
+    # One phase that fails (out of memory at 16,384 envs, say) is reported in the table; the others still run
+    for name, measure in phases(args):
+        try:
+            measure(results)
+        except Exception as error:  # a one-shot run on a lent GPU: keep what the other phases measure
+            traceback.print_exc()
+            results["errors"].append(f"{name}: {type(error).__name__}: {str(error)[:300]}")
+        gc.collect()  # the phase's envs and model (JAX's and torch's device memory) before the next one
+        if th.cuda.is_available():
+            th.cuda.empty_cache()
         (args.out / "results.json").write_text(json.dumps(results, indent=1))
-
-    for n_envs in args.envs:
-        results["raw"][n_envs] = raw_rate(args, n_envs)
-        print(f"raw {n_envs}: {results['raw'][n_envs]:,.0f} steps/s", flush=True)
-        save()
-    for n_envs in args.envs:
-        if n_envs == args.learn_envs:
-            continue  # measured by the learning run below
-        model = build("cgac", n_envs, args)
-        results["cgac"][n_envs] = train_rate(model, args.seconds, warmup_steps=40 * n_envs)
-        assert isinstance(model, CGAC)
-        results["split"][n_envs] = phase_split(model, args.split_seconds)
-        print(f"cgac {n_envs}: {results['cgac'][n_envs]:,.0f} steps/s, split {results['split'][n_envs]}", flush=True)
-        save()
-        del model
-    for algo in ("cgac", "rsl_ppo"):
-        model = build(algo, args.learn_envs, args)
-        rate = train_rate(model, args.learn_seconds, warmup_steps=args.learn_envs * 40)
-        final = evaluate(model, args, args.learn_envs)
-        if isinstance(model, CGAC):  # after the evaluation: the learning run's steps and return are the budget's
-            results["split"][args.learn_envs] = phase_split(model, args.split_seconds)
-        results["learning"][algo] = {"steps_per_s": rate, "steps": model.num_timesteps, "return": final}
-        if algo == "cgac":
-            results["cgac"][args.learn_envs] = rate
-        print(f"{algo}: {rate:,.0f} steps/s, {model.num_timesteps:,} steps, return {final:.1f}", flush=True)
-        save()
-        del model
-    (args.out / "table.md").write_text(table(results, args))
+        (args.out / "table.md").write_text(table(results, args))
     print(table(results, args))
+    return 1 if results["errors"] else 0
 
 
 def table(results: dict[str, Any], args: argparse.Namespace) -> str:
+    updates = "CUDA graphs of the updates" if args.cuda_graphs else "eager updates"
     lines = [f"Machine: {results['machine']}", f"Task: {results['task']} (MuJoCo Playground, impl={args.impl})", ""]
     lines += [
-        "| envs | raw simulator steps/s | CGAC end-to-end steps/s | CGAC / raw | CGAC's time: simulator / collection / "
-        "updates / else |",
-        "| --- | --- | --- | --- | --- |",
+        f"| envs | raw simulator steps/s | CGAC end-to-end steps/s ({updates}) | CGAC / raw | CGAC, eager updates | "
+        "CGAC's time: simulator / collection / updates / else |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
-    for n_envs in args.envs:
+    for n_envs in sorted(set(args.envs) | {args.learn_envs}):
         raw, cgac, split = results["raw"].get(n_envs), results["cgac"].get(n_envs), results["split"].get(n_envs)
+        eager = results["cgac_eager"].get(n_envs)
         ratio = f"{cgac / raw:.2f}" if raw and cgac else "-"
         shares = " / ".join(f"{split[phase]:.0%}" for phase in ("env", "collection", "updates", "else")) if split else "-"
-        lines.append(f"| {n_envs:,} | {raw or 0:,.0f} | {cgac or 0:,.0f} | {ratio} | {shares} |")
+        eager_text = f"{eager:,.0f}" if eager else "-"
+        lines.append(f"| {n_envs:,} | {raw or 0:,.0f} | {cgac or 0:,.0f} | {ratio} | {eager_text} | {shares} |")
     lines += [
         "",
         f"Learning: {args.learn_seconds:.0f} s of training at {args.learn_envs:,} envs (after a warm-up of 40 steps per "
-        f"env), then one deterministic episode on each of {args.learn_envs:,} envs.",
+        f"env; CGAC with {updates}), then one deterministic episode on each of {args.learn_envs:,} envs.",
         "",
     ]
     lines += ["| algorithm | env steps/s | env steps | evaluation return |", "| --- | --- | --- | --- |"]
     for algo, found in results["learning"].items():
         lines.append(f"| {algo} | {found['steps_per_s']:,.0f} | {found['steps']:,} | {found['return']:.1f} |")
+    if results["errors"]:
+        lines += ["", "Failed (the traceback is in the log):", *(f"- {error}" for error in results["errors"])]
     return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
     np.set_printoptions(precision=3)
-    main()
+    sys.exit(main())
