@@ -368,7 +368,8 @@ def test_action_saturation_script_tiny_budget(tmp_path, variant):
 @pytest.mark.parametrize("run", ["cgac", "ppo"])
 def test_policy_actions_script_tiny_budget(tmp_path, run):
     command = [sys.executable, str(ROOT / "experiments" / "policy_actions.py"), "--env", "Pendulum-v1", "--backend",
-               "dummy", "--run", run, "--steps", "200", "--eval-envs", "2", "--log-folder", str(tmp_path)]  # fmt: skip
+               "dummy", "--run", run, "--steps", "200", "--eval-envs", "2", "--log-folder", str(tmp_path),
+               "--gains", "1", "100"]  # fmt: skip
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "2 evaluation episodes" in result.stdout and "400 steps" in result.stdout  # Pendulum: 200 steps each
@@ -376,6 +377,11 @@ def test_policy_actions_script_tiny_budget(tmp_path, run):
     (cells,) = [row for row in rows if row[0] == "0"]  # Pendulum: one action
     mean, magnitude, share = float(cells[1]), float(cells[2]), float(cells[3])
     assert abs(mean) <= magnitude <= 1.0 and 0.0 <= share <= 1.0
+    (gain_1,) = [row for row in rows if row[0] == "1" and len(row) == 3]
+    (gain_100,) = [row for row in rows if row[0] == "100" and len(row) == 3]
+    for row in (gain_1, gain_100):
+        assert -3300 < float(row[1].split()[0]) <= 0  # Pendulum's return over 200 steps
+    assert float(gain_100[2]) >= float(gain_1[2])  # the larger gain saturates at least as often
 
 
 @pytest.mark.slow  # about 90 s: Playground's LeapCube compiles for JAX on the CPU
