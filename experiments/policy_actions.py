@@ -84,7 +84,7 @@ def episodes(model: Any, env: VecEnv, gain: float) -> tuple[np.ndarray, np.ndarr
         actions, _ = model.predict(observations, deterministic=True)  # type: ignore[arg-type]
         unit = np.clip(gain * (2.0 * (actions - low) / (high - low) - 1.0), -1.0, 1.0)
         squashed.append(unit[running])
-        observations, rewards, dones, _ = env.step(low + (unit + 1.0) * 0.5 * (high - low))
+        observations, rewards, dones, _ = env.step(np.clip(low + (unit + 1.0) * 0.5 * (high - low), low, high))
         returns += rewards * running
         running &= ~dones
     return returns, np.concatenate(squashed)
