@@ -110,7 +110,7 @@ def raw_rate(args: argparse.Namespace, n_envs: int) -> float:
     venv, device = env.venv, env.device
     venv.reset(seed=0)
     action_dim = int(np.prod(env.action_space.shape))  # type: ignore[arg-type]
-    for _ in range(3):  # compiles (the state of a reset and of a step may differ in weak types: two compilations)
+    for _ in range(2):  # compiles the step
         venv.step(th.zeros(n_envs, action_dim, device=device))
     synchronize()
     steps, start = 0, time.perf_counter()

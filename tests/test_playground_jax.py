@@ -64,6 +64,30 @@ def test_steps_match_the_task_driven_directly():
     assert env._step._cache_size() == 1  # the jitted step compiled once: the reset's state is committed like the step's
 
 
+def test_the_task_compiles_once_per_size(monkeypatch):
+    # CheetahRun and Go1's joystick set data.time from a Python float at reset, a weakly typed leaf that the step's
+    # state does not have: the step must still compile once, and a partial reset must reuse the compiled reset
+    task = registry.load(TASK, config_overrides={"impl": "jax"})
+    task_reset, traced_resets = task.reset, []
+
+    def reset(rng):
+        traced_resets.append(rng)
+        state = task_reset(rng)
+        return state.replace(data=state.data.replace(time=0.0))
+
+    monkeypatch.setattr(task, "reset", reset)
+    monkeypatch.setattr(registry, "load", lambda env_name, config_overrides=None: task)
+    env = PlaygroundVectorEnv(TASK, 4, impl="jax", episode_length=EPISODE + 1)  # a size of its own among the compiled
+    traced_when_built = len(traced_resets)  # the task's sizes are read by tracing its reset (jax.eval_shape)
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(th.zeros(4, 1))
+    env.reset(options={"reset_mask": th.tensor([True, False, False, False])})
+    env.step(th.zeros(4, 1))
+    assert env._step._cache_size() == 1
+    assert len(traced_resets) == traced_when_built + 1
+
+
 def test_partial_reset_and_random_first_episode():
     env = make_vec_env(TASK, 8, backend="playground", seed=0, vec_env_kwargs=dict(episode_length=EPISODE))
     assert isinstance(env, TorchVecEnv) and env.max_episode_steps() == EPISODE

@@ -110,6 +110,11 @@ def _to_torch(value: Any) -> Any:
     return th.from_dlpack(value)
 
 
+def _strong_types(tree: Any) -> Any:
+    """``tree`` with every weakly typed array given its dtype for good (no change of values)."""
+    return jax.tree_util.tree_map(lambda leaf: leaf.astype(leaf.dtype) if isinstance(leaf, jax.Array) else leaf, tree)
+
+
 def _space(size: Any) -> spaces.Space:
     if isinstance(size, dict):
         return spaces.Dict({key: _space(item) for key, item in size.items()})
@@ -122,8 +127,9 @@ def _compiled(
     env_name: str, num_envs: int, episode_length: int, overrides: tuple[tuple[str, Any], ...], menagerie: str
 ) -> tuple[Any, ...]:
     """
-    The jitted reset, step and partial reset of ``num_envs`` copies of a task, and its observation and action sizes:
-    built once per process, so that envs of the same task and size (training and evaluation) share the compilation.
+    The jitted reset and step of ``num_envs`` copies of a task, a partial reset built on the reset, and the task's
+    observation and action sizes: built once per process, so that envs of the same task and size (training and
+    evaluation) share the compilation.
     ``menagerie``, the folder the robots load from (``mjx_env.MENAGERIE_PATH``, read by ``registry.load``), is part of
     the key: a task loaded from another folder is built anew.
     """
@@ -144,17 +150,26 @@ def _compiled(
         }
         return state, (state.obs, state.reward, *flags, state.info["final_obs"], components)
 
-    def reset_some(state: Any, mask: jax.Array, key: jax.Array) -> Any:
-        fresh = env.reset(jax.random.split(key, num_envs))
+    def reset(keys: jax.Array) -> Any:
+        # The first state in the types of the step's: a weakly typed leaf (``data.time`` from a Python float) would
+        # make the jitted step compile a second time at its second call
+        return _strong_types(env.reset(keys))
 
-        def pick(new: jax.Array, old: jax.Array) -> jax.Array:
+    def pick(mask: jax.Array, fresh: Any, state: Any) -> Any:
+        def where(new: jax.Array, old: jax.Array) -> jax.Array:
             if new.ndim == 0 or new.shape[0] != num_envs:
                 return old
             return jp.where(mask.reshape(-1, *([1] * (new.ndim - 1))), new, old)
 
-        return jax.tree_util.tree_map(pick, fresh, state)
+        return jax.tree_util.tree_map(where, fresh, state)
 
-    return jax.jit(env.reset), jax.jit(step), jax.jit(reset_some), observation_size, action_size
+    jit_reset, jit_pick = jax.jit(reset), jax.jit(pick)
+
+    def reset_some(state: Any, mask: jax.Array, key: jax.Array) -> Any:
+        # The jitted reset, then a jitted selection: one compilation of the task's reset per size, not two
+        return jit_pick(mask, jit_reset(jax.random.split(key, num_envs)), state)
+
+    return jit_reset, jax.jit(step), reset_some, observation_size, action_size
 
 
 class PlaygroundVectorEnv(gym.vector.VectorEnv):
