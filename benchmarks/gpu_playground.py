@@ -222,7 +222,9 @@ def main() -> int:
     parser.add_argument("--menagerie", default=None, help="folder of mujoco_menagerie's robots (see use_menagerie)")
     parser.add_argument("--envs", type=int, nargs="+", default=[1024, 4096, 16384])
     parser.add_argument("--learn-envs", type=int, default=4096)
-    parser.add_argument("--seconds", type=float, default=15.0, help="timed seconds of each throughput measurement")
+    # 8 s: millions of steps at GPU rates, and the 8 minutes leave about 100 s beside the two learning runs for three
+    # compilations of the task and seven throughput measurements
+    parser.add_argument("--seconds", type=float, default=8.0, help="timed seconds of each throughput measurement")
     parser.add_argument("--learn-seconds", type=float, default=180.0)
     parser.add_argument("--split-seconds", type=float, default=5.0, help="seconds of CGAC's wall-clock split per --envs")
     parser.add_argument("--impl", default="jax", help="MuJoCo's JAX implementation: jax (MJX) or warp")
