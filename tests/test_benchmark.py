@@ -4,6 +4,7 @@ import os
 import pathlib
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import pytest
 
@@ -156,3 +157,40 @@ def test_gpu_benchmark_keeps_going_after_a_failed_measurement(tmp_path, monkeypa
     assert row[1] == "1,000" and row[2] == "0"  # raw measured, CGAC not
     assert table_rows(table, "rsl_ppo") == [["rsl_ppo", "500", "4,096", "1.5"]]
     assert "- cgac 16: RuntimeError: CUDA out of memory" in table
+
+
+def test_gpu_benchmark_trains_cgac_again_eagerly_when_its_cuda_graphs_fail(monkeypatch):
+    # A failure of the CUDA graphs at their capture must not leave the comparison of returns without CGAC
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import gpu_playground
+
+    trained_with = []
+
+    def learn_and_evaluate(algo, args, cuda_graphs):
+        trained_with.append(cuda_graphs)
+        if cuda_graphs:
+            raise RuntimeError("CUDA error: operation not permitted when stream is capturing")
+        return SimpleNamespace(num_timesteps=4096), 1000.0, 2.5
+
+    monkeypatch.setattr(gpu_playground, "learn_and_evaluate", learn_and_evaluate)
+    monkeypatch.setattr(gpu_playground, "CGAC", SimpleNamespace)  # the stub model counts as CGAC's
+    monkeypatch.setattr(gpu_playground, "phase_split", lambda model, seconds: {"env": 1.0})
+
+    def learning_cgac(retry_within):
+        args = SimpleNamespace(learn_envs=8, envs=[8], cuda_graphs=True, retry_within=retry_within, split_seconds=1.0)
+        (measure,) = [measure for name, measure in gpu_playground.phases(args) if name == "learning cgac"]
+        return measure
+
+    measure = learning_cgac(retry_within=60.0)
+    results = {"errors": [], **{key: {} for key in ("raw", "cgac", "cgac_eager", "split", "learning")}}
+    measure(results)
+    assert trained_with == [True, False]
+    assert results["learning"]["cgac"] == {"steps_per_s": 1000.0, "steps": 4096, "return": 2.5}
+    assert results["cgac_eager"] == {8: 1000.0} and results["cgac"] == {}  # the rate is the eager updates'
+    (error,) = results["errors"]
+    assert error.startswith("learning cgac with CUDA graphs: RuntimeError") and "trained again with eager" in error
+    # A failure after --retry-within seconds is not retried
+    trained_with.clear()
+    with pytest.raises(RuntimeError, match="capturing"):
+        learning_cgac(retry_within=-1.0)(results)
+    assert trained_with == [True]
