@@ -21,7 +21,7 @@ what it measured; a measurement that fails is listed there and the others still 
   ``--learn-envs``); then, over ``--split-seconds`` more with the device synchronised around
   each phase (so not part of the rate), the split of CGAC's wall-clock between the simulator's step, the rest of the
   collection (sampling, normalisation, the window), the updates and everything else: where CUDA graphs of the
-  collection could pay;
+  collection could pay; on CUDA, then the host syncs that torch makes in 20 more iterations of CGAC;
 - raw and CGAC (steps/s after a warm-up, and the split) at each other ``--envs``.
 """
 
@@ -32,6 +32,8 @@ import platform
 import sys
 import time
 import traceback
+import warnings
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -96,6 +98,26 @@ def phase_split(model: CGAC, seconds: float) -> dict[str, float]:
         "collection": (collection_s - env_s) / total,
         "updates": updates_s / total,
         "else": (total - collection_s - updates_s) / total,
+    }
+
+
+def host_syncs(model: CGAC, iterations: int) -> dict[str, Any]:
+    """
+    The synchronising CUDA calls that torch makes in ``iterations`` more iterations of CGAC
+    (``torch.cuda.set_sync_debug_mode``), per iteration and by where they were made.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        th.cuda.set_sync_debug_mode("warn")
+        try:
+            model.learn(iterations * model.n_steps * model.n_envs, reset_num_timesteps=False)
+        finally:
+            th.cuda.set_sync_debug_mode("default")
+    places = Counter(f"{Path(w.filename).name}:{w.lineno}" for w in caught if "synchroniz" in str(w.message).lower())
+    return {
+        "iterations": iterations,
+        "per_iteration": sum(places.values()) / iterations,
+        "places": dict(places.most_common(8)),
     }
 
 
@@ -179,6 +201,8 @@ def phases(args: argparse.Namespace) -> list[tuple[str, Callable[[dict[str, Any]
     learning runs), then the other env counts, so that a run cut short by its time limit still has those.
     """
 
+    trained: dict[str, CGAC] = {}  # the learning run's model, for the count of host syncs after it
+
     def raw(n_envs: int) -> Callable[[dict[str, Any]], None]:
         def measure(results: dict[str, Any]) -> None:
             results["raw"][n_envs] = raw_rate(args, n_envs)
@@ -210,8 +234,16 @@ def phases(args: argparse.Namespace) -> list[tuple[str, Callable[[dict[str, Any]
             if isinstance(model, CGAC):  # after the evaluation: the learning run's steps and return are the budget's
                 results["cgac" if cuda_graphs == args.cuda_graphs else "cgac_eager"][args.learn_envs] = rate
                 results["split"][args.learn_envs] = phase_split(model, args.split_seconds)
+                trained["cgac"] = model
 
         return measure
+
+    def syncs(results: dict[str, Any]) -> None:
+        # The collection and the updates should not wait for the device: one read of the statistics per iteration
+        model = trained.pop("cgac", None)
+        if model is not None and th.cuda.is_available():
+            results["syncs"] = host_syncs(model, iterations=20)
+            print(f"host syncs: {results['syncs']}", flush=True)
 
     def throughput(n_envs: int, cuda_graphs: bool) -> Callable[[dict[str, Any]], None]:
         def measure(results: dict[str, Any]) -> None:
@@ -231,7 +263,7 @@ def phases(args: argparse.Namespace) -> list[tuple[str, Callable[[dict[str, Any]
     found: list[tuple[str, Callable[[dict[str, Any]], None]]] = [(f"raw {args.learn_envs}", raw(args.learn_envs))]
     if args.cuda_graphs:  # first: a rate at --learn-envs even if the graphs fail on this path
         found.append((f"cgac {args.learn_envs} eager", throughput(args.learn_envs, cuda_graphs=False)))
-    found += [("learning cgac", learning("cgac")), ("learning rsl_ppo", learning("rsl_ppo"))]
+    found += [("learning cgac", learning("cgac")), ("host syncs", syncs), ("learning rsl_ppo", learning("rsl_ppo"))]
     for n_envs in args.envs:
         if n_envs != args.learn_envs:
             found += [(f"raw {n_envs}", raw(n_envs)), (f"cgac {n_envs}", throughput(n_envs, args.cuda_graphs))]
@@ -304,6 +336,14 @@ def table(results: dict[str, Any], args: argparse.Namespace) -> str:
     lines += ["| algorithm | env steps/s | env steps | evaluation return |", "| --- | --- | --- | --- |"]
     for algo, found in results["learning"].items():
         lines.append(f"| {algo} | {found['steps_per_s']:,.0f} | {found['steps']:,} | {found['return']:.1f} |")
+    if results.get("syncs"):
+        syncs = results["syncs"]
+        places = ", ".join(f"{place} ({count})" for place, count in syncs["places"].items()) or "none"
+        lines += [
+            "",
+            f"Host syncs per CGAC iteration (torch.cuda.set_sync_debug_mode, {syncs['iterations']} iterations at "
+            f"{args.learn_envs:,} envs after the learning run): {syncs['per_iteration']:.1f}; made at: {places}",
+        ]
     if results["errors"]:
         lines += ["", "Failed (the traceback is in the log):", *(f"- {error}" for error in results["errors"])]
     return "\n".join(lines) + "\n"

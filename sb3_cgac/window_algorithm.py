@@ -4,7 +4,7 @@ The collection half of CGAC (as SB3 keeps ``collect_rollouts`` in ``OnPolicyAlgo
 transition, the "next action" its Q-GAE target needs; ``CGAC`` adds the updates.
 """
 
-from typing import Any
+from typing import Any, TypeVar
 
 from sb3_cgac.buffers import CGACRolloutBuffer
 from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
@@ -18,6 +18,8 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
+
+SelfWindowAlgorithm = TypeVar("SelfWindowAlgorithm", bound="WindowOnPolicyAlgorithm")
 
 
 class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
@@ -112,13 +114,20 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
             if not keep_going:
                 return False
 
-        if tensor_env is not None:  # one host read of the rollout's finished episodes
-            self.ep_info_buffer.extend(tensor_env.pop_episodes())  # type: ignore[union-attr]
+        if tensor_env is not None:  # the finished episodes, copied to the host without waiting (on a GPU, a rollout late)
+            self.ep_info_buffer.extend(tensor_env.pop_episodes(wait=False))  # type: ignore[union-attr]
         if self._parallel is not None:  # one set of VecNormalize statistics for every rank
             self._parallel.sync_vec_normalize(self.get_vec_normalize_env())
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
+
+    def learn(self: SelfWindowAlgorithm, *args: Any, **kwargs: Any) -> SelfWindowAlgorithm:
+        super().learn(*args, **kwargs)
+        env = self.get_env()
+        if isinstance(env, TorchVecEnv):  # the episodes whose copy to the host was still under way
+            self.ep_info_buffer.extend(env.pop_episodes())  # type: ignore[union-attr]
+        return self
 
     def dump_logs(self, iteration: int = 0) -> None:
         # The adapters' episode statistics (reward components, task metrics) beside rollout/ep_rew_mean

@@ -4,9 +4,11 @@ import os
 import pathlib
 import subprocess
 import sys
+import warnings
 from types import SimpleNamespace
 
 import pytest
+import torch as th
 
 pytest.importorskip("envpool")
 pytest.importorskip("rl_zoo3")
@@ -194,3 +196,33 @@ def test_gpu_benchmark_trains_cgac_again_eagerly_when_its_cuda_graphs_fail(monke
     with pytest.raises(RuntimeError, match="capturing"):
         learning_cgac(retry_within=-1.0)(results)
     assert trained_with == [True]
+
+
+def test_gpu_benchmark_counts_host_syncs(monkeypatch):
+    # On CUDA, the synchronising calls torch makes in CGAC's iterations are counted by place and written in the table
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import gpu_playground
+
+    modes = []
+    monkeypatch.setattr(th.cuda, "set_sync_debug_mode", modes.append)
+
+    class Model:
+        n_steps, n_envs = 1, 8
+
+        def learn(self, total_timesteps, reset_num_timesteps):
+            assert total_timesteps == 4 * 8 and not reset_num_timesteps
+            for _ in range(4):  # one read of the statistics per iteration
+                warnings.warn("called a synchronizing CUDA operation", UserWarning)
+
+    syncs = gpu_playground.host_syncs(Model(), iterations=4)
+    assert modes == ["warn", "default"]
+    assert syncs["iterations"] == 4 and syncs["per_iteration"] == 1.0 and list(syncs["places"].values()) == [4]
+    args = SimpleNamespace(envs=[8], learn_envs=8, cuda_graphs=True, impl="jax", learn_seconds=3.0)
+    results = {"machine": "a test machine", "task": "CartpoleBalance", "errors": [], "syncs": syncs}
+    results.update({key: {} for key in ("raw", "cgac", "cgac_eager", "split", "learning")})
+    table = gpu_playground.table(results, args)
+    assert (
+        "Host syncs per CGAC iteration (torch.cuda.set_sync_debug_mode, 4 iterations at 8 envs after the learning run): 1.0"
+        in table
+    )
+    assert "test_benchmark.py:" in table  # where the syncs were made

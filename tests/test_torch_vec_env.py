@@ -2,7 +2,7 @@
 
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import RewardEntropySchedule
-from sb3_cgac.vec_env import GymnasiumVecEnv, NumpyToTorchVectorEnv, TorchVecEnv, make_vec_env
+from sb3_cgac.vec_env import GymnasiumVecEnv, NumpyToTorchVectorEnv, TorchVecEnv, make_vec_env, torch_vec_env
 
 import gymnasium as gym
 import numpy as np
@@ -10,6 +10,7 @@ import pytest
 import torch as th
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
+from stable_baselines3.common.callbacks import BaseCallback
 
 
 class ReachEnv(gym.Env):
@@ -168,6 +169,80 @@ def test_reward_entropy_schedule_on_the_device():
     assert schedules[1].reward_average == pytest.approx(schedules[0].reward_average, rel=1e-6)
     assert -8.0 < schedules[0].reward_average < -2.0  # beta strictly between its ends: the schedule moved it
     assert torch_model.target_entropy_beta == pytest.approx(numpy_model.target_entropy_beta, rel=1e-6)
+
+
+class CopyUnderWay:
+    """Stands for the CUDA event of a copy of finished episodes to the host that has not completed."""
+
+    def __init__(self):
+        self.complete, self.waited = False, False
+
+    def query(self):
+        return self.complete
+
+    def synchronize(self):
+        self.waited = self.complete = True
+
+
+def copies_under_way(monkeypatch):
+    copies = []
+
+    def copy_to_host(table):
+        copies.append(CopyUnderWay())
+        return table.cpu(), copies[-1]
+
+    monkeypatch.setattr(torch_vec_env, "_copy_to_host", copy_to_host)
+    return copies
+
+
+def test_finished_episodes_read_without_waiting(monkeypatch):
+    # On a GPU the collection does not wait for the finished episodes: their copy to the host completes in the
+    # background and a later call returns them, in order
+    copies = copies_under_way(monkeypatch)
+    env = reach_envs("torch", n_envs=6)
+    env.reset()
+
+    def steps(n):
+        for _ in range(n):
+            env.step_tensors(th.zeros(6, 2))  # the reach envs' episodes end at their time limit of 25 steps
+
+    steps(30)
+    assert env.pop_episodes(wait=False) == [] and len(copies) == 1  # under way
+    steps(30)
+    copies[0].complete = True
+    first = env.pop_episodes(wait=False)
+    assert [episode["l"] for episode in first] == [25] * 6 and len(copies) == 2 and not copies[1].waited
+    second = env.pop_episodes()  # waits for the copy under way
+    assert copies[1].waited and [episode["l"] for episode in second] == [25] * 6
+    assert env.pop_episodes() == [] and env.pop_episodes(wait=False) == []
+
+
+def test_collection_does_not_wait_for_episodes_and_learn_returns_with_every_one(monkeypatch):
+    copies = copies_under_way(monkeypatch)  # none completes until learn() waits for it at its end
+
+    class WaitedDuringTraining(BaseCallback):
+        waited = False
+
+        def _on_step(self):
+            return True
+
+        def _on_rollout_end(self):
+            self.waited |= any(copy.waited for copy in copies)
+
+    callback = WaitedDuringTraining()
+    numpy_model, torch_model = train("gymnasium"), train("gymnasium_torch", callback=callback)
+    assert copies and not callback.waited and all(copy.waited for copy in copies)
+    episodes = [[(e["r"], e["l"]) for e in model.ep_info_buffer] for model in (numpy_model, torch_model)]
+    assert episodes[0] == episodes[1] and len(episodes[1]) > 0
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+def test_finished_episodes_copied_from_the_gpu_in_the_background():
+    table = th.arange(24, dtype=th.float64, device="cuda").reshape(2, 3, 4)
+    host, done = torch_vec_env._copy_to_host(table)
+    assert done is not None and host.is_pinned()
+    done.synchronize()
+    assert th.equal(host, table.cpu())
 
 
 def test_collection_takes_no_numpy_step(monkeypatch):

@@ -59,6 +59,29 @@ def _to_numpy(obs: TensorObs) -> np.ndarray | dict[str, np.ndarray]:
     return obs.cpu().numpy()
 
 
+def _episode(row: np.ndarray, component_keys: list[str]) -> dict[str, float]:
+    # A row of a table of finished episodes: (finished, return, length, component sums...)
+    sums = dict(zip(component_keys, map(float, row[3:]), strict=True))
+    return {"r": float(row[1]), "l": int(row[2]), **sums}
+
+
+def _copy_to_host(table: th.Tensor) -> tuple[th.Tensor, th.cuda.Event | None]:
+    """
+    ``table`` copied to the host: from a GPU into pinned memory without waiting, with the event that marks the end of
+    the copy; else at once (None).
+    """
+    if table.device.type != "cuda":
+        return table.cpu(), None
+    try:
+        host = th.empty(table.shape, dtype=table.dtype, pin_memory=True)
+    except RuntimeError:  # no page-locked memory here: a copy that waits
+        return table.cpu(), None
+    host.copy_(table, non_blocking=True)
+    done = th.cuda.Event()
+    done.record()
+    return host, done
+
+
 def _to_tensor(value: Any, device: th.device, dtype: th.dtype | None = None) -> Any:
     if isinstance(value, dict):
         return {key: _to_tensor(item, device, dtype) for key, item in value.items()}
@@ -116,6 +139,9 @@ class TorchVecEnv(VecEnv):
         self._component_sums = th.zeros((0, self.num_envs), dtype=th.float64, device=self.device)
         # Per step: finished (as Monitor reports), returns, lengths and component sums, one (3 + components, envs) tensor
         self._finished: list[th.Tensor] = []
+        # Tables of finished episodes on their way to the host: the host tensor, the event that marks the end of its
+        # copy (None: complete), the component keys they were summed under
+        self._copies: list[tuple[th.Tensor, th.cuda.Event | None, list[str]]] = []
 
     @property
     def last_observations(self) -> TensorObs:
@@ -191,22 +217,28 @@ class TorchVecEnv(VecEnv):
         self._last_obs = obs
         return TensorStep(obs, rewards, terminated, truncated, final, info)
 
-    def pop_episodes(self) -> list[dict[str, float]]:
+    def pop_episodes(self, wait: bool = True) -> list[dict[str, float]]:
         """
         The episodes finished since the last call, as Monitor reports them (``r``, ``l``), with their reward
         components' sums: one host read.
-        """
-        if not self._finished:
-            return []
-        table = th.stack(self._finished).cpu().numpy()  # (steps, 3 + components, envs)
-        self._finished = []
-        rows = np.moveaxis(table, 1, -1)[table[:, 0] > 0]  # one row per finished episode, in step and env order
-        return [self._episode(row) for row in rows]
 
-    def _episode(self, row: np.ndarray) -> dict[str, float]:
-        # A row of the table of _finished: (finished, return, length, component sums...)
-        sums = dict(zip(self._component_keys or [], map(float, row[3:]), strict=True))
-        return {"r": float(row[1]), "l": int(row[2]), **sums}
+        :param wait: False: do not wait for the device. On a GPU the episodes are copied to the host in the background
+            and a later call returns them (each call returns those whose copy has completed); on a CPU it makes no
+            difference
+        """
+        if self._finished:
+            table, done = _copy_to_host(th.stack(self._finished))  # (steps, 3 + components, envs)
+            self._copies.append((table, done, list(self._component_keys or [])))
+            self._finished = []
+        episodes = []
+        while self._copies and (wait or self._copies[0][1] is None or self._copies[0][1].query()):
+            table, done, keys = self._copies.pop(0)
+            if done is not None:
+                done.synchronize()
+            array = table.numpy()
+            rows = np.moveaxis(array, 1, -1)[array[:, 0] > 0]  # one row per finished episode, in step and env order
+            episodes += [_episode(row, keys) for row in rows]
+        return episodes
 
     def _info_numbers(self, info: dict[str, Any], key: str) -> th.Tensor:
         if key not in info:  # not reported at this step
@@ -235,7 +267,7 @@ class TorchVecEnv(VecEnv):
             )
             infos[idx]["TimeLimit.truncated"] = bool(truncated[idx])
         for idx in np.flatnonzero(table[:, 0] > 0):  # the envs whose episode Monitor would report
-            infos[idx]["episode"] = self._episode(table[idx])
+            infos[idx]["episode"] = _episode(table[idx], self._component_keys or [])
         return _to_numpy(step.observations), step.rewards.cpu().numpy(), dones, infos
 
     def close(self) -> None:
