@@ -92,7 +92,7 @@ class TorchVecEnv(VecEnv):
     """
     An SB3 ``VecEnv`` over a torch-native ``gymnasium.vector.VectorEnv`` (see the module's docstring for the
     contract). Episode returns and lengths are kept on the device; ``step_tensors`` returns the step as tensors and
-    ``pop_episodes`` the episodes finished since its last call (one host read), while SB3's ``step`` gives NumPy
+    ``pop_episodes`` the finished episodes (one host read, or none to wait for), while SB3's ``step`` gives NumPy
     arrays and one info dict per env (``terminal_observation``, ``TimeLimit.truncated``, ``episode``), as the
     other adapters do.
 
@@ -219,12 +219,12 @@ class TorchVecEnv(VecEnv):
 
     def pop_episodes(self, wait: bool = True) -> list[dict[str, float]]:
         """
-        The episodes finished since the last call, as Monitor reports them (``r``, ``l``), with their reward
-        components' sums: one host read.
+        The finished episodes not returned yet, in the order they finished, as Monitor reports them (``r``, ``l``),
+        with their reward components' sums: one host read.
 
-        :param wait: False: do not wait for the device. On a GPU the episodes are copied to the host in the background
-            and a later call returns them (each call returns those whose copy has completed); on a CPU it makes no
-            difference
+        :param wait: False: do not wait for the device. On a GPU the episodes finished since the last call are copied
+            to the host in the background and a later call returns them (each call returns those whose copy has
+            completed); on a CPU it makes no difference
         """
         if self._finished:
             table, done = _copy_to_host(th.stack(self._finished))  # (steps, 3 + components, envs)
