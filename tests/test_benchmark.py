@@ -111,6 +111,16 @@ def test_data_parallel_table(tmp_path):
     assert (tmp_path / "summary.md").read_text().strip() == result.stdout.strip()
 
 
+def test_ops_per_iteration_table():
+    command = [sys.executable, str(ROOT / "benchmarks" / "ops_per_iteration.py"), "--n-envs", "16", "--iterations", "2"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    counts = {row[0].split(" (")[0]: float(row[1].replace(",", "")) for row in table_rows(result.stdout, "the ")}
+    assert list(counts) == ["the collection", "the Q-GAE targets", "the minibatches", "the updates"]
+    assert all(count > 0 for count in counts.values())
+    assert counts["the updates"] > counts["the minibatches"]  # eager updates on the CPU: hundreds of ops each
+
+
 def test_gpu_benchmark_tiny_budget_on_the_cpu(tmp_path):
     # benchmarks/gpu.sh is run once when a GPU is lent, for minutes: its whole path (the wrapper, the Playground adapter,
     # CGAC and rsl_rl's PPO, the table) runs here on JAX's CPU backend at 8 envs, so that it does not first fail there
