@@ -188,12 +188,12 @@ def test_gpu_benchmark_trains_cgac_again_eagerly_when_its_cuda_graphs_fail(monke
     monkeypatch.setattr(gpu_playground, "CGAC", SimpleNamespace)  # the stub model counts as CGAC's
     monkeypatch.setattr(gpu_playground, "phase_split", lambda model, seconds: {"env": 1.0})
 
-    def learning_cgac(retry_within):
-        args = SimpleNamespace(learn_envs=8, envs=[8], cuda_graphs=True, retry_within=retry_within, split_seconds=1.0)
+    def learning_cgac():
+        args = SimpleNamespace(learn_envs=8, envs=[8], cuda_graphs=True, split_seconds=1.0)
         (measure,) = [measure for name, measure in gpu_playground.phases(args) if name == "learning cgac"]
         return measure
 
-    measure = learning_cgac(retry_within=60.0)
+    measure = learning_cgac()
     results = {"errors": [], **{key: {} for key in ("raw", "cgac", "cgac_eager", "split", "learning")}}
     measure(results)
     assert trained_with == [True, False]
@@ -201,10 +201,11 @@ def test_gpu_benchmark_trains_cgac_again_eagerly_when_its_cuda_graphs_fail(monke
     assert results["cgac_eager"] == {8: 1000.0} and results["cgac"] == {}  # the rate is the eager updates'
     (error,) = results["errors"]
     assert error.startswith("learning cgac with CUDA graphs: RuntimeError") and "trained again with eager" in error
-    # A failure after --retry-within seconds is not retried
+    # A failure after RETRY_WITHIN seconds is not retried
     trained_with.clear()
+    monkeypatch.setattr(gpu_playground, "RETRY_WITHIN", -1.0)
     with pytest.raises(RuntimeError, match="capturing"):
-        learning_cgac(retry_within=-1.0)(results)
+        learning_cgac()(results)
     assert trained_with == [True]
 
 
