@@ -280,7 +280,7 @@ def main() -> int:
     parser.add_argument("--menagerie", default=None, help="folder of mujoco_menagerie's robots (see use_menagerie)")
     parser.add_argument("--envs", type=int, nargs="+", default=[1024, 4096, 16384])
     parser.add_argument("--learn-envs", type=int, default=4096)
-    # 8 s: millions of steps at GPU rates, and the 8 minutes leave about 100 s beside the two learning runs for three
+    # 8 s: millions of steps at GPU rates; the two learning runs take 6 of the 8 minutes, the rest holds three
     # compilations of the task and seven throughput measurements
     parser.add_argument("--seconds", type=float, default=8.0, help="timed seconds of each throughput measurement")
     parser.add_argument("--learn-seconds", type=float, default=180.0)

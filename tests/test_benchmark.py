@@ -121,6 +121,16 @@ def test_ops_per_iteration_table():
     assert counts["the updates"] > counts["the minibatches"]  # eager updates on the CPU: hundreds of ops each
 
 
+def test_playground_compile_table():
+    pytest.importorskip("mujoco_playground")
+    command = [sys.executable, str(ROOT / "benchmarks" / "playground_compile.py"), "--task", "CartpoleBalance", "--envs", "4"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    seconds = {row[0]: float(row[1]) for row in table_rows(result.stdout, "") if row[0] not in ("call", "---")}
+    assert list(seconds) == ["build", "reset", "first step", "second step", "partial reset", "step after it"]
+    assert all(value >= 0 for value in seconds.values())
+
+
 def test_gpu_benchmark_tiny_budget_on_the_cpu(tmp_path):
     # benchmarks/gpu.sh is run once when a GPU is lent, for minutes: its whole path (the wrapper, the Playground adapter,
     # CGAC and rsl_rl's PPO, the table) runs here on JAX's CPU backend at 8 envs, so that it does not first fail there
