@@ -72,6 +72,23 @@ def _nbytes(obs: TensorObs) -> int:
     return sum(value.element_size() * value.nelement() for value in values)
 
 
+def _linear_recurrence(offsets: th.Tensor, decays: th.Tensor) -> th.Tensor:
+    """
+    Solve ``y_t = offsets_t + decays_t * y_{t+1}`` over the first dimension, ``y`` of the last step being its offset.
+
+    A Hillis-Steele scan: ceil(log2(steps)) rounds of a few whole-window operations rather than a group of small ones
+    per step, so that the kernel launches per iteration on a GPU do not grow with the window. After round k each step
+    holds its sum over the next 2^(k+1) steps and the product of their decays.
+    """
+    shift, n_steps = 1, offsets.shape[0]
+    while shift < n_steps:
+        offsets = th.cat([th.addcmul(offsets[:-shift], decays[:-shift], offsets[shift:]), offsets[-shift:]])
+        if 2 * shift < n_steps:  # the decays are not read after the last round
+            decays = th.cat([decays[:-shift] * decays[shift:], decays[-shift:]])
+        shift *= 2
+    return offsets
+
+
 class CGACRolloutBuffer:
     """
     Rolling window of the last ``buffer_window`` steps of every env (time-major ring buffer).
@@ -331,13 +348,9 @@ class CGACRolloutBuffer:
         cont[-1] = False
         gamma_lam = self.gamma * self.gae_lambda
         one_step = rewards + self.gamma * (~terminated) * next_values
-        returns = th.empty_like(rewards)
-        last = one_step[-1]
-        returns[-1] = last
-        # Y_t = r_t + g m_t Qbar_{t+1} + g lam c_t (Y_{t+1} - Qbar_{t+1}), vectorised over envs
-        for step in range(self.size - 2, -1, -1):
-            last = one_step[step] + gamma_lam * cont[step] * (last - next_values[step])
-            returns[step] = last
+        # Y_t = r_t + g m_t Qbar_{t+1} + g lam c_t (Y_{t+1} - Qbar_{t+1}) = a_t + b_t Y_{t+1}, with b = 0 at the newest step
+        decay = gamma_lam * cont.to(rewards.dtype)
+        returns = _linear_recurrence(one_step - decay * next_values, decay)
 
         horizon = self.gae_horizon
         if horizon is not None and horizon < self.size:

@@ -1,5 +1,5 @@
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import CGACRolloutBuffer
+from sb3_cgac.buffers import CGACRolloutBuffer, _linear_recurrence
 from sb3_cgac.collection import TerminalObservations, split_episode_ends
 
 import gymnasium as gym
@@ -146,6 +146,51 @@ def test_ring_wraps_and_computes_only_new_values():
     next_values = [4.0, 5.0, 6.0, 100.0]
     expected = literal_q_gae(window_rewards, next_values, [False] * 4, [False] * 4, [True] * 4)
     assert np.allclose(buffer.returns[order, 0].numpy(), expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("n_steps", [1, 2, 3, 5, 8, 32, 37])
+def test_linear_recurrence_matches_the_step_loop(n_steps):
+    # The scan that computes the targets against y_t = a_t + b_t y_{t+1} step by step, with cut traces (b = 0)
+    generator = th.Generator().manual_seed(n_steps)
+    offsets = th.randn(n_steps, 6, generator=generator, dtype=th.float64)
+    decays = th.rand(n_steps, 6, generator=generator, dtype=th.float64) * (th.rand(n_steps, 6, generator=generator) > 0.2)
+    expected = offsets.clone()
+    for step in range(n_steps - 2, -1, -1):
+        expected[step] += decays[step] * expected[step + 1]
+    assert th.allclose(_linear_recurrence(offsets, decays), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_targets_of_a_window_of_many_envs():
+    # 37 steps (not a power of two) of 5 envs with terminations and truncations, against the literal sum per env
+    window, n_envs = 37, 5
+    rng = np.random.default_rng(0)
+    buffer = CGACRolloutBuffer(window, OBS_SPACE, ACTION_SPACE, device="cpu", n_envs=n_envs, gamma=GAMMA, gae_lambda=LAMBDA)
+    obs = rng.normal(size=(window + 1, n_envs, 1)).astype(np.float32)
+    next_actions = rng.uniform(-1, 1, size=(window, n_envs, 1)).astype(np.float32)
+    rewards = rng.normal(size=(window, n_envs)).astype(np.float32)
+    terminated, truncated = rng.random((window, n_envs)) < 0.1, rng.random((window, n_envs)) < 0.05
+    truncated &= ~terminated
+    buffer.set_current_obs(th.from_numpy(obs[0]), np.ones(n_envs, dtype=bool))
+    for t in range(window):
+        envs = np.flatnonzero(truncated[t])
+        # The time-limited envs bootstrap from a terminal observation of 7.0
+        terminal = TerminalObservations(th.from_numpy(envs), th.full((len(envs), 1), 7.0), th.ones(len(envs), dtype=th.bool))
+        buffer.add(
+            th.zeros(n_envs, 1),
+            rewards[t],
+            terminated[t],
+            truncated[t],
+            th.from_numpy(obs[t + 1]),
+            np.ones(n_envs, dtype=bool),
+            th.from_numpy(next_actions[t]),
+            terminal if len(envs) else None,
+        )
+    buffer.compute_returns(fake_target_q)
+    next_obs = np.where(truncated[..., None], 7.0, obs[1:])
+    next_values = (next_obs + next_actions)[..., 0]
+    for env in range(n_envs):
+        expected = literal_q_gae(rewards[:, env], next_values[:, env], terminated[:, env], truncated[:, env], [True] * window)
+        assert np.allclose(buffer.returns[:, env].numpy(), expected, atol=1e-5)
 
 
 def test_nonfinite_transitions_are_excluded():
