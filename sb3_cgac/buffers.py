@@ -77,8 +77,8 @@ def _linear_recurrence(offsets: th.Tensor, decays: th.Tensor) -> th.Tensor:
     Solve ``y_t = offsets_t + decays_t * y_{t+1}`` over the first dimension, ``y`` of the last step being its offset.
 
     A Hillis-Steele scan: ceil(log2(steps)) rounds of a few whole-window operations rather than a group of small ones
-    per step, so that the kernel launches per iteration on a GPU do not grow with the window. After round k each step
-    holds its sum over the next 2^(k+1) steps and the product of their decays.
+    per step, so that the kernel launches per iteration on a GPU do not grow with the window. After round k (from 0) a
+    step holds the recurrence's terms of itself and the 2^(k+1) - 1 steps after it, and the product of their decays.
     """
     shift, n_steps = 1, offsets.shape[0]
     while shift < n_steps:
