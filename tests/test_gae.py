@@ -170,6 +170,7 @@ def test_targets_of_a_window_of_many_envs():
     rewards = rng.normal(size=(window, n_envs)).astype(np.float32)
     terminated, truncated = rng.random((window, n_envs)) < 0.1, rng.random((window, n_envs)) < 0.05
     truncated &= ~terminated
+    assert terminated.sum() >= 5 and truncated.sum() >= 5, "the check needs episode ends of both kinds"
     buffer.set_current_obs(th.from_numpy(obs[0]), np.ones(n_envs, dtype=bool))
     for t in range(window):
         envs = np.flatnonzero(truncated[t])
