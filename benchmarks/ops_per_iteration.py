@@ -35,8 +35,11 @@ def in_phase(name: str, function: Callable[..., Any]) -> Callable[..., Any]:
     return call
 
 
-def count_ops(model: CGAC, iterations: int) -> dict[str, float]:
-    """Top-level torch operations per iteration of ``model.learn``, by the innermost phase they ran in."""
+def count_ops(model: CGAC, iterations: int) -> dict[str, tuple[float, float]]:
+    """
+    Top-level torch operations per iteration of ``model.learn``, by the innermost phase they ran in: all of them, and
+    those that ``Tensor.numpy()`` makes (a CPU tensor's conversions: no kernel, and not made on a GPU).
+    """
     env = model.get_env()
     assert isinstance(env, TorchVecEnv)
     buffer = model.rollout_buffer
@@ -47,22 +50,25 @@ def count_ops(model: CGAC, iterations: int) -> dict[str, float]:
     buffer.sample = in_phase("sampling", buffer.sample)  # type: ignore[method-assign]
     env.venv.step = in_phase("simulator", env.venv.step)  # type: ignore[method-assign]
     try:
-        with profile(activities=[ProfilerActivity.CPU]) as profiler:
+        with profile(activities=[ProfilerActivity.CPU], with_stack=True) as profiler:  # the stack: Python's calls
             model.learn(iterations * model.n_steps * model.n_envs, reset_num_timesteps=False)
     finally:
         del model.collect_rollouts, model.train, buffer.compute_returns, buffer.sample, env.venv.step
     counts: collections.Counter[str] = collections.Counter()
+    conversions: collections.Counter[str] = collections.Counter()
     for event in profiler.events():
         if not event.name.startswith("aten::"):
             continue
-        parent, phase = event.cpu_parent, None
+        parent, phase, in_numpy = event.cpu_parent, None, False
         while parent is not None and not parent.name.startswith("aten::"):  # an op inside another op is not counted
             if phase is None and parent.name.startswith("phase:"):
                 phase = parent.name[len("phase:") :]
+            in_numpy = in_numpy or parent.name.startswith("<built-in method numpy of Tensor")
             parent = parent.cpu_parent
         if parent is None and phase in PHASES:
             counts[phase] += 1
-    return {phase: counts[phase] / iterations for phase in PHASES}
+            conversions[phase] += in_numpy
+    return {phase: (counts[phase] / iterations, conversions[phase] / iterations) for phase in PHASES}
 
 
 def main() -> None:
@@ -77,10 +83,10 @@ def main() -> None:
     ops = count_ops(model, args.iterations)
     print(f"{args.env}, {args.n_envs} envs, CGAC's CPU defaults (batch {model.batch_size}, ", end="")
     print(f"{model.critic_updates_per_step} critic updates per step), {args.iterations} iterations\n")
-    print("| phase | torch operations per iteration |\n| --- | --- |")
+    print("| phase | torch operations per iteration | of them `.numpy()` conversions (CPU only) |\n| --- | --- | --- |")
     for phase, description in PHASES.items():
-        print(f"| {description} | {ops[phase]:,.0f} |")
-    outside = sum(ops[phase] for phase in PHASES if phase != "updates")
+        print(f"| {description} | {ops[phase][0]:,.0f} | {ops[phase][1]:,.0f} |")
+    outside = sum(ops[phase][0] for phase in PHASES if phase != "updates")
     print(f"\nOutside the updates: {outside:,.0f} per iteration.")
 
 
