@@ -1,7 +1,8 @@
 """MuJoCo Playground (JAX, on the CPU here) through PlaygroundVectorEnv and TorchVecEnv: the episode contract checked
-against the task driven directly, and CGAC trained on it (a DM Control Suite port: no downloaded assets); a robot
-task with envpool's models of mujoco_menagerie."""
+against the task driven directly (MJX and MuJoCo Warp), and CGAC trained on it (a DM Control Suite port: no downloaded
+assets); a robot task with envpool's models of mujoco_menagerie."""
 
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -20,16 +21,19 @@ from mujoco_playground import registry  # noqa: E402
 from mujoco_playground._src import mjx_env  # noqa: E402
 
 TASK = "CartpoleBalance"
+WARP = importlib.util.find_spec("warp") is not None
 EPISODE = 12
 
 
-def test_steps_match_the_task_driven_directly():
+@pytest.mark.parametrize("impl", ["jax", pytest.param("warp", marks=pytest.mark.skipif(not WARP, reason="needs warp-lang"))])
+def test_steps_match_the_task_driven_directly(impl):
+    # MJX, and MuJoCo Warp on its CPU backend (its kernels compile at the first step, about a minute)
     n_envs, seed = 3, 7
-    env = PlaygroundVectorEnv(TASK, n_envs, impl="jax", episode_length=EPISODE)
+    env = PlaygroundVectorEnv(TASK, n_envs, impl=impl, episode_length=EPISODE)
     # The same task with Brax's vmap and time-limit wrappers and no autoreset, reset with the keys the adapter's
     # autoreset wrapper hands the task
     reference = brax_training.EpisodeWrapper(
-        brax_training.VmapWrapper(registry.load(TASK, config_overrides={"impl": "jax"})), EPISODE, 1
+        brax_training.VmapWrapper(registry.load(TASK, config_overrides={"impl": impl})), EPISODE, 1
     )
     keys = jax.random.split(jax.random.split(jax.random.PRNGKey(seed))[1], n_envs)
     state = jax.jit(reference.reset)(jax.vmap(jax.random.split)(keys)[..., 1])

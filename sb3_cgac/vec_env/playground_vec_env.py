@@ -180,7 +180,8 @@ class PlaygroundVectorEnv(gym.vector.VectorEnv):
 
     :param env_name: A Playground task (``mujoco_playground.registry``), e.g. ``"CheetahRun"``, ``"Go1JoystickFlatTerrain"``
     :param num_envs: Number of parallel envs
-    :param impl: MuJoCo's JAX implementation: ``"jax"`` (MJX) or ``"warp"`` (MuJoCo Warp; a GPU and ``warp-lang``)
+    :param impl: MuJoCo's JAX implementation: ``"jax"`` (MJX) or ``"warp"`` (MuJoCo Warp, on a CUDA GPU or Warp's
+        CPU backend, whose kernels compile at the first step)
     :param episode_length: Time limit of the episodes (None: the task's ``episode_length``)
     :param config_overrides: Further settings of the task's config
     :param menagerie_path: The folder of mujoco_menagerie's robots for the robot tasks (see ``use_menagerie``; None:
