@@ -261,8 +261,8 @@ def launch(args: argparse.Namespace, run: str, seed: int, spec: dict[str, Any]) 
     command += ["--minutes", str(args.minutes)] if args.minutes else ["--steps", str(args.steps)]
     if args.conf_dir:
         command += ["--conf-dir", args.conf_dir]
-    log = run_paths(Path(args.out), run, seed)[2].open("w")
-    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+    with run_paths(Path(args.out), run, seed)[2].open("w") as log:  # the run keeps its own copy of the handle
+        return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
 
 
 def progress_of(out: Path, run: str, seed: int, minutes: bool) -> float:

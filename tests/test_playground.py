@@ -181,11 +181,11 @@ def test_compare_cgac_rsl_ppo_and_ppo_with_metrics(tmp_path):
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
-    rows = list(csv.DictReader((out / "evaluations.csv").open()))
+    rows = list(csv.DictReader((out / "evaluations.csv").read_text().splitlines()))
     assert {row["run"] for row in rows} == {"cgac", "rsl_ppo", "ppo_parallel"}
     # Panda's episodes last 150 steps: every evaluation saw whole episodes and their reward components
     assert all(float(row["mean_length"]) == 150 and float(row["reward_gripper_box"]) > 0 for row in rows)
     table = (out / "summary.md").read_text()
     assert "final reward_box_target |" in table and "| rsl_ppo | 1 |" in table
-    train_stats = list(csv.DictReader((out / "runs" / "rsl_ppo_seed0_train.csv").open()))
+    train_stats = list(csv.DictReader((out / "runs" / "rsl_ppo_seed0_train.csv").read_text().splitlines()))
     assert "value_loss" in train_stats[-1]

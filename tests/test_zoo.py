@@ -251,7 +251,8 @@ def fake_launches(monkeypatch, scripts):
     def launch(args, run, seed, spec):
         _, done_path, log_path = compare.run_paths(pathlib.Path(args.out), run, seed)
         command = ["bash", "-c", scripts[run].format(done=done_path)]
-        launched.append(subprocess.Popen(command, stdout=log_path.open("w"), stderr=subprocess.STDOUT))
+        with log_path.open("w") as log:
+            launched.append(subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT))
         return launched[-1]
 
     monkeypatch.setattr(compare, "launch", launch)
@@ -301,8 +302,8 @@ def test_compare_records_train_stats(tmp_path):
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
-    evaluations = list(csv.DictReader((out / "runs" / "cgac_seed0.csv").open()))
-    stats = list(csv.DictReader((out / "runs" / "cgac_seed0_train.csv").open()))
+    evaluations = list(csv.DictReader((out / "runs" / "cgac_seed0.csv").read_text().splitlines()))
+    stats = list(csv.DictReader((out / "runs" / "cgac_seed0_train.csv").read_text().splitlines()))
     assert [row["steps"] for row in stats] == [row["steps"] for row in evaluations]
     # The evaluation scheduled at the step the budget ends on is left to the end of training: one row, the final model
     assert [int(row["steps"]) for row in evaluations] == [0, 1280, 2560]
@@ -322,7 +323,7 @@ def test_record_train_stats_rollout_episodes(tmp_path):
     record_train_stats(path, rows, {"train/ent_coef": 0.5, "rollout/ep_rew_mean": 1.0}, 0, 0.0)
     episodes = [{"r": 10.0, "l": 1000, "t": 1.0}, {"r": -2.0, "l": 40, "t": 2.0}]
     record_train_stats(path, rows, {"train/ent_coef": 0.25}, 128, 1.5, episodes)
-    stats = list(csv.DictReader(path.open()))
+    stats = list(csv.DictReader(path.read_text().splitlines()))
     assert list(stats[0]) == ["steps", "seconds", "ent_coef", "rollout_return", "rollout_length"]
     assert stats[0]["rollout_return"] == "" and stats[0]["rollout_length"] == ""
     assert float(stats[1]["rollout_return"]) == 4.0 and float(stats[1]["rollout_length"]) == 520.0
