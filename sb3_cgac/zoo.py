@@ -1,7 +1,8 @@
 """
 rl-baselines3-zoo integration (extra ``zoo``): CGAC registered as ``rl_zoo3.ALGOS["cgac"]``, this package's
 hyperparameter files as the default configuration, and the vectorised-env backends of ``sb3_cgac.vec_env``
-behind the zoo's ``--vec-env`` flag (``envpool``, ``gymnasium``, ``gymnasium_async`` besides ``dummy`` and ``subproc``).
+behind the zoo's ``--vec-env`` flag (``envpool``, ``gymnasium``, ``gymnasium_async`` and the torch-native
+``gymnasium_torch``, ``playground``, ``mjlab`` besides ``dummy`` and ``subproc``).
 """
 
 import argparse
@@ -18,7 +19,7 @@ from typing import Any
 
 from sb3_cgac import CGAC
 from sb3_cgac.distributed import init_from_env, leave, world
-from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_envpool_task, register_optional_envs
+from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_backend_task, register_optional_envs
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
@@ -37,7 +38,7 @@ except ImportError as error:  # pragma: no cover - depends on the installed extr
 
 HYPERPARAMS_DIR = Path(str(importlib.resources.files("sb3_cgac.hyperparams")))
 # Backends that are not built from per-env constructors, so the zoo's own make_vec_env cannot build them
-ADAPTER_BACKENDS = ("envpool", "gymnasium", "gymnasium_async")
+ADAPTER_BACKENDS = ("envpool", "gymnasium", "gymnasium_async", "gymnasium_torch", "playground", "mjlab")
 # Keys turned into schedules (the zoo's own)
 SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf", "delta_std")
 
@@ -123,8 +124,8 @@ class CGACExperimentManager(ExperimentManager):
             kwargs["vec_env_type"] = "dummy"
         elif "vec_env_type" not in kwargs:
             kwargs["vec_env_type"] = backend
-        if backend == "envpool":  # the zoo looks the id up in gymnasium's registry
-            register_envpool_task(args[2] if len(args) > 2 else kwargs["env_id"])
+        # The zoo looks the id up in gymnasium's registry: envpool's, Playground's and mjlab's own tasks are not there
+        register_backend_task(args[2] if len(args) > 2 else kwargs["env_id"], backend)
         super().__init__(*args, **kwargs)
         self.backend = backend
         self.backend_kwargs = backend_kwargs or {}
@@ -241,8 +242,8 @@ def train(argv: list[str] | None = None) -> None:
     backend = _option_value(argv, ("--vec-env",)) or "dummy"
     argv = _without_option(argv, "--vec-env")
     env_id = _option_value(argv, ("--env",))
-    if backend == "envpool" and env_id is not None:
-        register_envpool_task(env_id)  # envpool-only ids (Playground's ports): rl_zoo3 looks the id up before building
+    if env_id is not None:  # ids that only a backend builds: rl_zoo3 looks the id up before building
+        register_backend_task(env_id, backend)
     if backend in ("dummy", "subproc"):
         argv += ["--vec-env", backend]
     algo = _option_value(argv, ("--algo",)) or "ppo"

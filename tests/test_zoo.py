@@ -93,6 +93,19 @@ def test_train_cli_on_an_envpool_only_task(tmp_path):
     assert (run_dir(tmp_path, "cgac", name) / f"{name}.zip").exists()
 
 
+def test_train_cli_on_a_playground_task(tmp_path):
+    # A torch-native backend behind the zoo: MuJoCo Playground's JAX task (no gymnasium id) from a YAML entry
+    pytest.importorskip("mujoco_playground")
+    conf = tmp_path / "cgac.yml"
+    entry = {"n_envs": 4, "n_timesteps": 128, "policy": "MlpPolicy", "buffer_window": 8}
+    conf.write_text(yaml.safe_dump({"CartpoleBalance": entry}))
+    train(["--algo", "cgac", "--env", "CartpoleBalance", "-n", "128", "--vec-env", "playground", "--conf-file", str(conf),
+           "-f", str(tmp_path / "logs"), "--seed", "0"])  # fmt: skip
+    assert (run_dir(tmp_path / "logs", "cgac", "CartpoleBalance") / "CartpoleBalance.zip").exists()
+    with pytest.raises(gym.error.Error, match="backend='playground'"):  # what the registered id says to gymnasium
+        gym.make("CartpoleBalance")
+
+
 def test_envpool_backend_and_enjoy(tmp_path):
     pytest.importorskip("envpool")
     train(["--algo", "cgac", "--env", "Pendulum-v1", "-n", "1280", "--vec-env", "envpool", "-f", str(tmp_path), "--seed", "0"])
@@ -108,7 +121,7 @@ def test_envpool_backend_and_enjoy(tmp_path):
     assert "Mean reward" in result.stdout
 
 
-@pytest.mark.parametrize("backend", ["dummy", "envpool"])
+@pytest.mark.parametrize("backend", ["dummy", "envpool", "gymnasium_torch"])
 def test_random_first_episode_key(tmp_path, backend):
     """The YAML key cuts the training envs' first episodes at random lengths, with any backend, and not the eval envs."""
     if backend == "envpool":

@@ -49,6 +49,26 @@ def register_optional_envs() -> None:
         import myosuite  # noqa: F401  (registers the myo* envs on import)
 
 
+def register_backend_task(env_id: str, backend: str) -> None:
+    """
+    Register a task that only ``backend`` builds in gymnasium's registry under its id, for tools that look ids up there
+    (rl_zoo3): envpool's tasks that gymnasium lacks (``register_envpool_task``), MuJoCo Playground's JAX tasks
+    (``"playground"``, e.g. ``CheetahRun``) and mjlab's (``"mjlab"``). The registered env only explains which backend
+    builds the task; ids that gymnasium already has are left alone.
+    """
+    if backend == "envpool":
+        register_envpool_task(env_id)
+    elif backend in ("playground", "mjlab") and env_id not in gym.registry:
+        gym.register(env_id, entry_point=functools.partial(_backend_only_task, env_id, backend))
+
+
+def _backend_only_task(env_id: str, backend: str, **kwargs: Any) -> gym.Env:
+    raise gym.error.Error(
+        f"{env_id} is a {backend} task without a gymnasium env: build it with the {backend} backend "
+        f"(sb3_cgac.vec_env.make_vec_env({env_id!r}, n_envs, backend={backend!r}), or --vec-env {backend})."
+    )
+
+
 def _make_registered(env_id: str, **kwargs: Any) -> gym.Env:
     """
     ``gym.make`` in a fresh worker process, where only the envs registered on import exist; like SB3's
@@ -148,6 +168,7 @@ __all__ = [
     "auto_episode_info",
     "episode_metrics",
     "make_vec_env",
+    "register_backend_task",
     "register_envpool_task",
     "register_optional_envs",
 ]
