@@ -10,7 +10,7 @@ import functools
 from collections.abc import Iterable
 from typing import Any
 
-from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv, register_envpool_task
+from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv
 from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv, auto_episode_info
 from sb3_cgac.vec_env.torch_vec_env import NumpyToTorchVectorEnv, TensorStep, TorchVecEnv
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
@@ -52,13 +52,12 @@ def register_optional_envs() -> None:
 def register_backend_task(env_id: str, backend: str) -> None:
     """
     Register a task that only ``backend`` builds in gymnasium's registry under its id, for tools that look ids up there
-    (rl_zoo3): envpool's tasks that gymnasium lacks (``register_envpool_task``), MuJoCo Playground's JAX tasks
-    (``"playground"``, e.g. ``CheetahRun``) and mjlab's (``"mjlab"``). The registered env only explains which backend
-    builds the task; ids that gymnasium already has are left alone.
+    (rl_zoo3): envpool's tasks that gymnasium lacks (``"envpool"``: MuJoCo Playground's ports, e.g.
+    ``Go1JoystickFlatTerrain-v1``), Playground's JAX tasks (``"playground"``, e.g. ``CheetahRun``) and mjlab's
+    (``"mjlab"``). The registered env only explains which backend builds the task; ids that gymnasium already has, and
+    the other backends, are left alone.
     """
-    if backend == "envpool":
-        register_envpool_task(env_id)
-    elif backend in ("playground", "mjlab") and env_id not in gym.registry:
+    if backend in ("envpool", "playground", "mjlab") and env_id not in gym.registry:
         gym.register(env_id, entry_point=functools.partial(_backend_only_task, env_id, backend))
 
 
@@ -169,6 +168,5 @@ __all__ = [
     "episode_metrics",
     "make_vec_env",
     "register_backend_task",
-    "register_envpool_task",
     "register_optional_envs",
 ]

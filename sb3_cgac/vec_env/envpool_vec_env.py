@@ -1,6 +1,5 @@
 """An SB3 ``VecEnv`` over an envpool batch: all envs stepped by one C++ thread pool."""
 
-import functools
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -21,24 +20,6 @@ def _import_envpool() -> Any:
     except ImportError as error:
         raise ImportError("EnvPoolVecEnv needs envpool: pip install 'sb3_cgac[envpool]' (or pip install envpool).") from error
     return envpool
-
-
-def register_envpool_task(env_id: str) -> None:
-    """
-    Register an envpool task that gymnasium lacks (MuJoCo Playground's ports, e.g. ``Go1JoystickFlatTerrain-v1``)
-    in gymnasium's registry under its id, for tools that look ids up there (rl_zoo3). The registered env only
-    explains that the envpool backend builds the task.
-    """
-    if env_id in gym.registry or env_id not in _import_envpool().list_all_envs():
-        return
-    gym.register(env_id, entry_point=functools.partial(_envpool_only_task, env_id))
-
-
-def _envpool_only_task(env_id: str, **kwargs: Any) -> gym.Env:
-    raise gym.error.Error(
-        f"{env_id} is an envpool task without a gymnasium env: build it with the envpool backend "
-        f"(sb3_cgac.vec_env.make_vec_env({env_id!r}, n_envs, backend='envpool'), or --vec-env envpool)."
-    )
 
 
 def _warn_if_torch_spins() -> None:
