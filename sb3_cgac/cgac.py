@@ -279,7 +279,14 @@ class CGAC(WindowOnPolicyAlgorithm):
         # Only dQ/da is needed for the actor loss: the critics' own gradients are not computed
         self.critic.set_q_requires_grad(False)
         loss, log_prob = actor_loss(
-            self.actor, self.critic, data.observations, data.weights, weight_sum, ent_coef, self._autocast_dtype
+            self.actor,
+            self.critic,
+            data.observations,
+            data.weights,
+            weight_sum,
+            ent_coef,
+            self._autocast_dtype,
+            self.policy.actor_q_reduction,
         )
         self.actor.optimizer.zero_grad(set_to_none=True)
         loss.backward()

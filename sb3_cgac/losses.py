@@ -46,7 +46,8 @@ def critic_loss(
     gather: Gather | None = None,
 ) -> tuple[th.Tensor, th.Tensor]:
     """
-    Weighted mean regression loss of all critics (paper Eq. 8, see ``q_regression_loss``).
+    Weighted mean loss of all critics to the Q-GAE targets: the regression of paper Eq. 8 (see ``q_regression_loss``),
+    or for categorical critics the cross-entropy to the targets' HL-Gauss distributions (``HistogramSupport``).
 
     :param critic: The trained critics
     :param observations: Observations of the minibatch
@@ -59,9 +60,13 @@ def critic_loss(
     :return: The loss, and the mean Q-value of the first critic (detached)
     """
     with th.autocast(actions.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
-        q_values = critic.q_values(observations, actions)
-    q_values = q_values.float()
-    return q_regression_loss(q_values, returns, weights, gather) / weight_sum, q_values[0].detach().mean()
+        outputs = critic.q_outputs(observations, actions)
+    q_values = critic.q_values_from_outputs(outputs.float())
+    if critic.support is None:
+        loss = q_regression_loss(q_values, returns, weights, gather)
+    else:
+        loss = (critic.support.cross_entropy(outputs, returns) * weights).sum()
+    return loss / weight_sum, q_values[0].detach().mean()
 
 
 def actor_loss(
@@ -72,10 +77,12 @@ def actor_loss(
     weight_sum: th.Tensor,
     ent_coef: th.Tensor,
     autocast_dtype: th.dtype | None = None,
+    q_reduction: str = "min",
 ) -> tuple[th.Tensor, th.Tensor]:
     """
-    The actor loss of paper Eq. 7, ``E[alpha * log pi(a|s) - min_i Q_i(s, a)]`` with reparameterised actions, through
-    the minimum of the critics (Eq. 11). The critics' parameters should not require gradients: only dQ/da is needed.
+    The actor loss of paper Eq. 7, ``E[alpha * log pi(a|s) - Q(s, a)]`` with reparameterised actions, where Q is the
+    minimum of the critics (Eq. 11) or their mean. The critics' parameters should not require gradients: only dQ/da
+    is needed.
 
     :param actor: The trained actor
     :param critic: The trained critics
@@ -84,13 +91,15 @@ def actor_loss(
     :param weight_sum: Sum of the weights (at least 1)
     :param ent_coef: The entropy coefficient alpha (detached)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
+    :param q_reduction: How the actor reads the critics: ``"min"`` (paper Eq. 11) or ``"mean"``
     :return: The loss, and the log-probabilities of the sampled actions (detached)
     """
     with th.autocast(weights.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
         actions_pi, log_prob = actor.action_log_prob(observations)
-        min_q = critic.q_values(observations, actions_pi).min(dim=0).values
+        q_values = critic.q_values(observations, actions_pi).float()
+    q_value = q_values.min(dim=0).values if q_reduction == "min" else q_values.mean(dim=0)
     log_prob = log_prob.float()
-    loss = ((ent_coef * log_prob - min_q.float()) * weights).sum() / weight_sum
+    loss = ((ent_coef * log_prob - q_value) * weights).sum() / weight_sum
     return loss, log_prob.detach()
 
 

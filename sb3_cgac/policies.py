@@ -198,6 +198,12 @@ class CGACPolicy(BasePolicy):
         (None: every key). With ``actor_keys`` this is an asymmetric actor-critic
     :param predict_actor: Whether to keep a third copy of the actor, ``actor_predict``, that ``predict()`` acts with
         (set by CGAC's ``predict_tau``, which averages it); False: ``predict()`` acts with the averaged actor
+    :param critic_layer_norm: Whether the critics have a LayerNorm between each hidden layer and its activation
+    :param n_bins: None: each critic outputs one Q-value (the paper's); a number such as 101: each outputs a
+        categorical distribution over that many bins of a fixed symlog support, trained by cross-entropy to the
+        targets' HL-Gauss distributions (``sb3_cgac.critics.HistogramSupport``: no per-task range to set)
+    :param actor_q_reduction: How the actor loss reads the critics: ``"min"``, their minimum (paper Eq. 11), or
+        ``"mean"``; the value targets always use the target critics' minimum
     """
 
     actor: Actor
@@ -229,6 +235,9 @@ class CGACPolicy(BasePolicy):
         actor_keys: list[str] | None = None,
         critic_keys: list[str] | None = None,
         predict_actor: bool = False,
+        critic_layer_norm: bool = False,
+        n_bins: int | None = None,
+        actor_q_reduction: str = "min",
     ):
         super().__init__(
             observation_space,
@@ -250,6 +259,14 @@ class CGACPolicy(BasePolicy):
                 f"CGACPolicy: mean_init_scale must be a finite number >= 0 (a factor on the actor's initial mean layer, "
                 f"1 for the unscaled init, 0.01 for near-zero initial actions), got {mean_init_scale}."
             )
+        if n_bins is not None and (isinstance(n_bins, bool) or not isinstance(n_bins, int) or n_bins < 2):
+            raise ValueError(
+                f"CGACPolicy: n_bins must be None (one Q-value per critic) or an integer >= 2 (bins of a categorical "
+                f"critic, e.g. 101), got {n_bins!r}."
+            )
+        if actor_q_reduction not in ("min", "mean"):
+            raise ValueError(f"CGACPolicy: actor_q_reduction must be 'min' or 'mean', got {actor_q_reduction!r}.")
+        self.actor_q_reduction = actor_q_reduction
         if net_arch is None:
             net_arch = list(DEFAULT_NET_ARCH)
         actor_arch, critic_arch = get_actor_critic_arch(net_arch)
@@ -295,6 +312,8 @@ class CGACPolicy(BasePolicy):
             "n_critics": n_critics,
             "share_features_extractor": share_features_extractor,
             "use_xavier_init": use_xavier_init,
+            "layer_norm": critic_layer_norm,
+            "n_bins": n_bins,
         }
         # The action bounds as tensors, for unscale_action_tensor (not saved: the action space gives them)
         assert isinstance(self.action_space, spaces.Box)
@@ -380,6 +399,9 @@ class CGACPolicy(BasePolicy):
                 actor_keys=self.actor_keys,
                 critic_keys=self.critic_keys,
                 predict_actor=self.predict_actor,
+                critic_layer_norm=self.critic_kwargs["layer_norm"],
+                n_bins=self.critic_kwargs["n_bins"],
+                actor_q_reduction=self.actor_q_reduction,
             )
         )
         return data
