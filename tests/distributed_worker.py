@@ -34,9 +34,13 @@ class FailAt(BaseCallback):
         return True
 
 
-def small_model() -> CGAC:
+# The critic options, for the checks named "<check>-critic-options"
+CRITIC_OPTIONS = dict(critic_layer_norm=True, n_bins=21, actor_q_reduction="mean")
+
+
+def small_model(critic_options: bool = False) -> CGAC:
     env = make_vec_env("Pendulum-v1", n_envs=8)
-    policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True)
+    policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True, **(CRITIC_OPTIONS if critic_options else {}))
     return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, policy_kwargs=policy_kwargs, seed=0)
 
 
@@ -48,8 +52,10 @@ def flat_state(model: CGAC) -> th.Tensor:
 
 def main() -> None:
     check, folder = sys.argv[1], Path(sys.argv[2])
+    critic_options = check.endswith("-critic-options")
+    check = check.removesuffix("-critic-options")
     rank, world_size = init_from_env(timeout_s=60)
-    model = small_model()
+    model = small_model(critic_options)
     result: dict = {"rank": rank, "world_size": world_size}
     if check == "train":
         model.learn(8 * 60)

@@ -125,6 +125,8 @@ def graphed_and_eager(n_envs: int = 8, env=None, **kwargs) -> tuple[CGAC, CGAC]:
         dict(ent_coef_monotone=True, policy_kwargs=dict(net_arch=[16], normalize_observations=True)),
         dict(update_precision="bfloat16"),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(foreach=True))),
+        # The critic options: LayerNorm, categorical heads, the actor on the critics' mean
+        dict(policy_kwargs=dict(net_arch=[16], critic_layer_norm=True, n_bins=21, actor_q_reduction="mean")),
     ],
 )
 def test_cuda_graphs_match_eager(kwargs):

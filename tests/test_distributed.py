@@ -28,8 +28,9 @@ def results(folder: pathlib.Path) -> list[dict]:
     return [json.loads((folder / f"rank{rank}.json").read_text()) for rank in range(2)]
 
 
-def test_two_ranks_train_identical_parameters_and_save(tmp_path):
-    run = torchrun("train", tmp_path)
+@pytest.mark.parametrize("variant", ["", "-critic-options"])
+def test_two_ranks_train_identical_parameters_and_save(tmp_path, variant):
+    run = torchrun("train" + variant, tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     ranks = results(tmp_path)
     assert [rank["world_size"] for rank in ranks] == [2, 2]
@@ -47,8 +48,9 @@ def test_two_ranks_train_identical_parameters_and_save(tmp_path):
     model.learn(8 * 4)  # trains on alone
 
 
-def test_averaged_gradients_equal_one_process_with_both_minibatches(tmp_path):
-    run = torchrun("gradients", tmp_path)
+@pytest.mark.parametrize("variant", ["", "-critic-options"])
+def test_averaged_gradients_equal_one_process_with_both_minibatches(tmp_path, variant):
+    run = torchrun("gradients" + variant, tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     for rank in results(tmp_path):
         assert rank["minibatches_differ"]
