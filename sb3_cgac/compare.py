@@ -574,17 +574,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def check_run_files(parser: argparse.ArgumentParser, conf_dir: str | None, files: list[str], env: str) -> None:
+    """Stop with one line when a run names no hyperparameter file, or its file has no entry for the env."""
+    import importlib.resources
+
+    import yaml
+
+    folder = Path(conf_dir) if conf_dir else Path(str(importlib.resources.files("sb3_cgac.hyperparams")))
+    available = sorted(path.stem for path in folder.glob("*.yml"))
+    for name in files:
+        path = folder / f"{name}.yml"
+        if not path.is_file():
+            message = f"run {name!r}: no file {path}; the runs of {folder} are {', '.join(available) or 'none'}"
+            parser.exit(2, f"{parser.prog}: error: {message}\n")
+        entries = yaml.safe_load(path.read_text()) or {}
+        if env not in entries:
+            message = f"run {name!r}: {path} has no entry for {env!r}; its entries are {', '.join(map(str, entries))}"
+            parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+
 def main(
     runs: dict[str, dict[str, Any]] | None = None, argv: list[str] | None = None, references: tuple[str, ...] = ("ppo", "sac")
 ) -> None:
     """
-    :param runs: Run name -> ``{"file": YAML file name, "overrides": {hyperparameter: value}}`` (``sb3_cgac.ablations``
+    :param runs: Run name -> ``{"file": YAML file name, "overrides": {hyperparameter: value}}`` (``experiments/ablations.py``
         passes its variants this way); default: ``--runs``, each its own file without overrides
     :param argv: Command-line arguments
     :param references: Runs the others are compared with (see ``summarise``)
     """
     configure_thread_spin()  # the workers inherit the setting; torch is not loaded yet in this process
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     args.out = args.out or f"results/{args.env}"
     if args.eval_every is None:
         args.eval_every = args.minutes / 20 if args.minutes else 0.05
@@ -592,6 +612,8 @@ def main(
         train_one(args)
         return
     runs = runs if runs is not None else {run: {"file": run} for run in args.runs}
+    if not args.summary_only:
+        check_run_files(parser, args.conf_dir, [run["file"] for run in runs.values()], args.env)
     if args.summary_only:
         summarise(Path(args.out), list(runs), args.first_seed + args.seeds, args.threshold, references)
     else:

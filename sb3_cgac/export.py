@@ -16,7 +16,7 @@ import argparse
 import copy
 import inspect
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import torch as th
@@ -148,17 +148,33 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--format", choices=EXPORT_FORMATS, help="default: from the output's suffix")
     args = parser.parse_args(argv)
 
+    def fail(message: str) -> NoReturn:
+        parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+    # SB3's load() adds ".zip" to a path without it
+    model_path = Path(args.model)
+    if not model_path.is_file() and not model_path.with_name(model_path.name + ".zip").is_file():
+        fail(f"no model file {args.model}: give the .zip that model.save() wrote")
+    if args.vec_normalize and not Path(args.vec_normalize).is_file():
+        fail(f"no VecNormalize file {args.vec_normalize}: give the .pkl that VecNormalize.save() wrote, or leave it out")
+
     from sb3_cgac import CGAC
 
-    model = CGAC.load(args.model, device="cpu")
+    try:
+        model = CGAC.load(args.model, device="cpu")
+    except Exception as error:  # a file that is not a saved CGAC model: one line, not the loader's stack
+        fail(f"{args.model} does not load as a CGAC model ({type(error).__name__}: {error})")
     vec_normalize = None
     if args.vec_normalize:
         import pickle
 
-        with open(args.vec_normalize, "rb") as file_handler:
-            vec_normalize = pickle.load(file_handler)
+        try:
+            with open(args.vec_normalize, "rb") as file_handler:
+                vec_normalize = pickle.load(file_handler)
+        except Exception as error:
+            fail(f"{args.vec_normalize} does not load as VecNormalize statistics ({type(error).__name__}: {error})")
         if not isinstance(vec_normalize, VecNormalize):
-            parser.error(f"{args.vec_normalize} holds a {type(vec_normalize).__name__}, not VecNormalize statistics.")
+            fail(f"{args.vec_normalize} holds a {type(vec_normalize).__name__}, not VecNormalize statistics")
     path = export_policy(model, args.output, vec_normalize=vec_normalize, export_format=args.format)
     print(f"Wrote the deterministic actor of {args.model} to {path}")
 

@@ -15,7 +15,7 @@ import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from sb3_cgac import CGAC
 from sb3_cgac.distributed import init_from_env, leave, world
@@ -23,6 +23,7 @@ from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_backend_task, regi
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 import gymnasium as gym
+import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule
 from stable_baselines3.common.vec_env import VecEnv
@@ -202,6 +203,34 @@ def _option_value(argv: list[str], names: tuple[str, ...]) -> str | None:
     return None
 
 
+def _exit_with_error(prog: str, message: str) -> NoReturn:
+    """Stop a command-line tool with one line that names the problem and the fix (exit status 2, as argparse)."""
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _check_train_arguments(argv: list[str]) -> None:
+    """The env id and its hyperparameters, checked before rl_zoo3 would fail on them with a stack trace."""
+    env_id = _option_value(argv, ("--env",))
+    if env_id is None or "-h" in argv or "--help" in argv:
+        return
+    prog = "python -m sb3_cgac.train"
+    if env_id not in gym.registry and _option_value(argv, ("--gym-packages",)) is None:
+        _exit_with_error(
+            prog,
+            f"no env {env_id!r} in gymnasium's registry: check the id, or name the package that registers it with "
+            "--gym-packages (e.g. gymnasium_robotics), or the backend that builds it with --vec-env "
+            "(envpool, playground, mjlab)",
+        )
+    conf = _option_value(argv, ("-conf", "--conf-file"))
+    if conf is not None and conf.endswith((".yml", ".yaml")):
+        if not Path(conf).is_file():
+            _exit_with_error(prog, f"no hyperparameter file {conf}")
+        entries = yaml.safe_load(Path(conf).read_text()) or {}
+        if env_id not in entries:
+            _exit_with_error(prog, f"{conf} has no entry for {env_id!r}; its entries are {', '.join(map(str, entries))}")
+
+
 def _without_option(argv: list[str], name: str) -> list[str]:
     result, skip = [], False
     for arg in argv:
@@ -252,6 +281,7 @@ def train(argv: list[str] | None = None) -> None:
     conf = hyperparams_file(algo)
     if _option_value(argv, ("-conf", "--conf-file")) is None and conf is not None:
         argv += ["--conf-file", str(conf)]
+    _check_train_arguments(argv)
     manager = functools.partial(CGACExperimentManager, backend=backend)
     with _swapped(rl_zoo3.train, "ExperimentManager", manager), _swapped(sys, "argv", ["sb3_cgac.train", *argv]):
         rl_zoo3.train.train()
@@ -266,6 +296,12 @@ def enjoy(argv: list[str] | None = None) -> None:
     """
     register()
     argv = list(sys.argv[1:] if argv is None else argv)
+    folder = _option_value(argv, ("-f", "--folder")) or "rl-trained-agents"
+    algo = _option_value(argv, ("--algo",)) or "ppo"
+    if "-h" not in argv and "--help" not in argv and not (Path(folder) / algo).is_dir():
+        _exit_with_error(
+            "python -m sb3_cgac.enjoy", f"no folder {Path(folder) / algo}: give -f the log folder that training wrote (logs)"
+        )
     with _swapped(sys, "argv", ["sb3_cgac.enjoy", *argv]):
         rl_zoo3.enjoy.enjoy()
 

@@ -86,3 +86,24 @@ def test_export_cli(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([model_path, "--output", str(tmp_path / "x.onnx"), "--vec-normalize", str(tmp_path / "other.pkl")])
     assert "not VecNormalize statistics" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["nothere.zip", "--output", "x.onnx"], "no model file nothere.zip"),
+        (["{model}", "--output", "x.onnx", "--vec-normalize", "nothere.pkl"], "no VecNormalize file nothere.pkl"),
+        (["{not_a_model}", "--output", "x.onnx"], "does not load as a CGAC model"),
+    ],
+)
+def test_export_cli_bad_input_in_one_line(tmp_path, capsys, arguments, message):
+    model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=0), policy_kwargs=dict(net_arch=[8]), seed=0)
+    model.save(tmp_path / "model")
+    (tmp_path / "not_a_model.zip").write_text("not a zip")
+    names = dict(model=str(tmp_path / "model.zip"), not_a_model=str(tmp_path / "not_a_model.zip"))
+    with pytest.raises(SystemExit) as stop:
+        main([argument.format(**names) for argument in arguments])
+    assert stop.value.code == 2
+    error = capsys.readouterr().err
+    # One line of ours, last (a dependency may print its own notices on import), and no stack trace
+    assert message in error.strip().splitlines()[-1] and "Traceback" not in error, error

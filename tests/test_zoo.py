@@ -507,3 +507,44 @@ def test_compare_main_process_does_not_load_torch():
     code = "import sys, sb3_cgac.compare; assert 'torch' not in sys.modules, 'sb3_cgac.compare loaded torch'"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["--runs", "cgac", "nosuchrun"], "no file"),
+        (["--env", "NoSuchEnv-v0"], "has no entry for 'NoSuchEnv-v0'"),
+    ],
+)
+def test_compare_bad_runs_in_one_line(tmp_path, capsys, arguments, message):
+    from sb3_cgac.compare import main as compare_main
+
+    argv = ["--env", "Pendulum-v1", "--runs", "cgac", "--steps", "100", "--out", str(tmp_path)]
+    with pytest.raises(SystemExit) as stop:
+        compare_main(argv=[*argv, *arguments])
+    assert stop.value.code == 2
+    error = capsys.readouterr().err
+    # One line of ours, last (a dependency may print its own notices on import), and no stack trace
+    assert message in error.strip().splitlines()[-1] and "Traceback" not in error, error
+    if "nosuchrun" in arguments:
+        assert "cgac, ppo" in error  # the runs that exist
+
+
+@pytest.mark.parametrize(
+    "command, arguments, message",
+    [
+        ("train", ["--algo", "cgac", "--env", "NoSuchEnv-v0"], "no env 'NoSuchEnv-v0'"),
+        ("train", ["--algo", "cgac", "--env", "CartPole-v1"], "has no entry for 'CartPole-v1'"),
+        ("enjoy", ["--algo", "cgac", "--env", "Pendulum-v1", "-f", "{tmp_path}/nologs"], "no folder"),
+    ],
+)
+def test_zoo_cli_bad_input_in_one_line(tmp_path, capsys, command, arguments, message):
+    from sb3_cgac.zoo import enjoy
+
+    function = train if command == "train" else enjoy
+    with pytest.raises(SystemExit) as stop:
+        function([argument.format(tmp_path=tmp_path) for argument in arguments])
+    assert stop.value.code == 2
+    error = capsys.readouterr().err
+    # One line of ours, last (a dependency may print its own notices on import), and no stack trace
+    assert message in error.strip().splitlines()[-1] and "Traceback" not in error, error
