@@ -39,7 +39,6 @@ DERIVED_ATTRIBUTES = (
 # Policy keyword arguments that 0.1.0 had and this release removed, with their 0.1.0 defaults
 REMOVED_POLICY_KWARGS: dict[str, Any] = {
     "state_dependent_std": False,
-    "critic_layer_norm": False,
     "stack_critics": False,
     "critic_float32_output": True,
 }

@@ -14,7 +14,7 @@ in the order of the observation space.
 
 import argparse
 import copy
-import inspect
+import importlib.util
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -102,40 +102,46 @@ def export_policy(
     path: str | Path,
     vec_normalize: VecNormalize | None = None,
     export_format: str | None = None,
-    opset_version: int = 17,
+    opset_version: int = 18,
 ) -> Path:
     """
-    Write the deterministic actor of ``model`` (see :class:`DeterministicActor`) to ``path``.
+    Write the deterministic actor of ``model`` (see :class:`DeterministicActor`) to ``path``. ONNX files come from
+    torch's current exporter (``torch.onnx.export(..., dynamo=True)``, which needs ``onnxscript``: extra ``export``),
+    with a dynamic batch dimension.
 
     :param model: A trained ``CGAC`` model
     :param path: Output file (``.onnx`` for ONNX, ``.pt`` for TorchScript unless ``export_format`` says)
     :param vec_normalize: The ``VecNormalize`` the model was trained with, if any (its observation statistics)
     :param export_format: ``"onnx"`` or ``"torchscript"`` (default: from the file's suffix, ONNX for ``.onnx``)
-    :param opset_version: ONNX opset
+    :param opset_version: ONNX opset (at least 18, the exporter's)
     :return: The path written
     """
     path = Path(path)
     export_format = export_format or ("onnx" if path.suffix == ".onnx" else "torchscript")
     if export_format not in EXPORT_FORMATS:
         raise ValueError(f"Unknown export format {export_format!r}; choose one of {EXPORT_FORMATS}.")
-    module = DeterministicActor(model, vec_normalize)
-    inputs = module.example_inputs()
+    module = DeterministicActor(model, vec_normalize).eval()
     if export_format == "torchscript":
-        th.jit.trace(module, inputs).save(str(path))
+        th.jit.trace(module, module.example_inputs()).save(str(path))
         return path
+    if importlib.util.find_spec("onnxscript") is None:
+        raise ImportError("ONNX export needs onnxscript (torch's ONNX exporter uses it): pip install 'sb3_cgac[export]'.")
+    # A batch of 2 in the example: torch.export specialises a dimension of size 1 to a constant
+    inputs = module.example_inputs(batch_size=2)
+    batch = th.export.Dim("batch")
     names = module.input_names()
-    kwargs: dict[str, Any] = {}
-    if "dynamo" in inspect.signature(th.onnx.export).parameters:
-        kwargs["dynamo"] = False  # the TorchScript-based exporter: no onnxscript needed
     th.onnx.export(
         module,
         inputs,
         str(path),
         input_names=names,
         output_names=["actions"],
-        dynamic_axes={name: {0: "batch"} for name in [*names, "actions"]},
+        # forward(*observations): one structure holding a shape per observation
+        dynamic_shapes=(tuple({0: batch} for _ in names),),
         opset_version=opset_version,
-        **kwargs,
+        dynamo=True,
+        external_data=False,
+        verbose=False,
     )
     return path
 
