@@ -12,12 +12,12 @@ The envs are Pendulum-v1 in a DummyVecEnv (stepping them is CPU work in Python):
 import argparse
 import functools
 
+import torch as th
+from timing import machine, rate, take_turns  # benchmarks/timing.py
+
 import sb3_cgac  # noqa: F401  (before torch: it sets torch's OpenMP spinning)
 from sb3_cgac import CGAC
 from sb3_cgac.vec_env import make_vec_env
-
-import torch as th
-from timing import machine, rate, take_turns  # benchmarks/timing.py
 
 
 def learn(model: CGAC, steps: int) -> int:

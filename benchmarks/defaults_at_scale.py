@@ -25,9 +25,9 @@ import sys
 import time
 from pathlib import Path
 
-from sb3_cgac.compare import COLUMNS, record_train_stats, run_paths, train_stats_path, write_csv_atomically
-
 import numpy as np
+
+from sb3_cgac.compare import COLUMNS, record_train_stats, run_paths, train_stats_path, write_csv_atomically
 
 # The options a worker gets from the command line of the parent
 FORWARDED = ("env", "minutes", "steps", "eval_every", "eval_episodes", "eval_envs", "device", "out", "overrides", "name")
@@ -40,12 +40,12 @@ def folder(args: argparse.Namespace, n_envs: int) -> Path:
 
 def train_one(args: argparse.Namespace) -> None:
     """One (env count, seed) pair: train the bare defaults under the budget, writing evaluations as it goes."""
-    from sb3_cgac import CGAC  # sb3_cgac, imported above, set torch's OpenMP spinning before torch loaded
-    from sb3_cgac.vec_env import make_vec_env
-
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.evaluation import evaluate_policy
+
+    from sb3_cgac import CGAC  # sb3_cgac, imported above, set torch's OpenMP spinning before torch loaded
+    from sb3_cgac.vec_env import make_vec_env
 
     th.set_num_threads(1)
     out = folder(args, args.n_envs[0])

@@ -38,9 +38,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sb3_cgac import CGAC
-from sb3_cgac.vec_env import TorchVecEnv, make_vec_env
-
 import numpy as np
 import torch as th
 from gymnasium import spaces
@@ -48,6 +45,9 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from timing import PhaseTimer  # benchmarks/timing.py
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import TorchVecEnv, make_vec_env
 
 # CGAC's learning run is trained again with eager updates if its CUDA graphs fail within these seconds (at capture);
 # a later failure is not retried: the device's time limit

@@ -14,10 +14,10 @@ import collections
 from collections.abc import Callable
 from typing import Any
 
+from torch.profiler import ProfilerActivity, profile, record_function
+
 from sb3_cgac import CGAC
 from sb3_cgac.vec_env import TorchVecEnv, make_vec_env
-
-from torch.profiler import ProfilerActivity, profile, record_function
 
 PHASES = {
     "collection": "the collection (sampling, sanitising, normalisation, the window)",

@@ -10,9 +10,9 @@ per process.
 import argparse
 import time
 
-from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv
-
 import torch as th
+
+from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv
 
 
 def main() -> None:

@@ -22,14 +22,14 @@ import time
 import warnings
 from typing import Any
 
-from sb3_cgac import CGAC
-from sb3_cgac.vec_env import make_vec_env, register_optional_envs
-
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from timing import PhaseTimer, machine, rate, take_turns  # benchmarks/timing.py
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import make_vec_env, register_optional_envs
 
 LEGEND = """\
 raw: vec-env steps/s with random actions. collect: CGAC collection only (averaged-actor actions and buffer writes),

@@ -214,10 +214,10 @@ def e2e_worker(args: argparse.Namespace) -> None:
     """Trains the env's zoo entry; a unit is one env step (``learn()`` runs whole iterations)."""
     import tempfile
 
+    import torch as th
+
     import sb3_cgac  # before torch: it sets torch's OpenMP spinning for envpool
     from sb3_cgac.zoo import build_model
-
-    import torch as th
 
     th.set_num_threads(args.threads)
     # A checkout's own hyperparams/ (the editable install maps sb3_cgac.hyperparams to the main checkout's files)

@@ -13,12 +13,12 @@ from sb3_cgac.threads import configure_thread_spin
 
 configure_thread_spin()  # before anything imports torch: torch's idle threads then leave envpool's cores alone
 
+import numpy as np  # noqa: E402
+import onnxruntime as ort  # noqa: E402
+
 from sb3_cgac import CGAC  # noqa: E402
 from sb3_cgac.export import export_policy  # noqa: E402
 from sb3_cgac.vec_env import make_vec_env  # noqa: E402
-
-import numpy as np  # noqa: E402
-import onnxruntime as ort  # noqa: E402
 
 ENV_ID = "Go1JoystickFlatTerrain-v1"
 

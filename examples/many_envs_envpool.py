@@ -14,12 +14,12 @@ from sb3_cgac.threads import configure_thread_spin
 # First, before anything loads torch: torch's idle threads then do not spin on the cores envpool steps on
 configure_thread_spin()
 
+from stable_baselines3.common.evaluation import evaluate_policy  # noqa: E402
+from stable_baselines3.common.vec_env import VecNormalize  # noqa: E402
+
 from sb3_cgac import CGAC  # noqa: E402
 from sb3_cgac.callbacks import RewardEntropySchedule  # noqa: E402
 from sb3_cgac.vec_env import EnvPoolVecEnv  # noqa: E402
-
-from stable_baselines3.common.evaluation import evaluate_policy  # noqa: E402
-from stable_baselines3.common.vec_env import VecNormalize  # noqa: E402
 
 
 def main() -> None:

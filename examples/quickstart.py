@@ -9,10 +9,10 @@ A minute or two on 2 CPU cores. A random policy scores about -1200; after 200k s
 
 import argparse
 
+from stable_baselines3.common.evaluation import evaluate_policy
+
 from sb3_cgac import CGAC
 from sb3_cgac.vec_env import make_vec_env
-
-from stable_baselines3.common.evaluation import evaluate_policy
 
 
 def main() -> None:

@@ -18,12 +18,12 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+import torch as th
+import yaml
+
 from sb3_cgac.compare import main as compare_main
 from sb3_cgac.policies import DEFAULT_NET_ARCH
 from sb3_cgac.zoo import HYPERPARAMS_DIR
-
-import torch as th
-import yaml
 
 
 class _Code(str):

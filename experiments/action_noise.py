@@ -14,9 +14,9 @@ from sb3_cgac.threads import configure_thread_spin
 
 configure_thread_spin()
 
-from sb3_cgac.vec_env import make_vec_env  # noqa: E402
-
 import numpy as np  # noqa: E402
+
+from sb3_cgac.vec_env import make_vec_env  # noqa: E402
 
 
 def main() -> None:

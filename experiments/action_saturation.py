@@ -26,15 +26,15 @@ from sb3_cgac.threads import configure_thread_spin
 
 configure_thread_spin()
 
-import sb3_cgac.cgac  # noqa: E402
-from sb3_cgac import CGAC  # noqa: E402
-from sb3_cgac.policies import TANH_EPSILON  # noqa: E402
-from sb3_cgac.zoo import build_model  # noqa: E402
-
 import numpy as np  # noqa: E402
 import torch as th  # noqa: E402
 from stable_baselines3.common.logger import configure  # noqa: E402
 from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization  # noqa: E402
+
+import sb3_cgac.cgac  # noqa: E402
+from sb3_cgac import CGAC  # noqa: E402
+from sb3_cgac.policies import TANH_EPSILON  # noqa: E402
+from sb3_cgac.zoo import build_model  # noqa: E402
 
 PROBE_VALUES = (-1.0, -0.5, 0.0, 0.5, 1.0)
 

@@ -19,15 +19,15 @@ from sb3_cgac.threads import configure_thread_spin
 
 configure_thread_spin()
 
-from sb3_cgac import CGAC  # noqa: E402
-from sb3_cgac.vec_env.playground_vec_env import use_menagerie  # noqa: E402
-from sb3_cgac.zoo import build_model  # noqa: E402
-
 import jax  # noqa: E402
 import jax.numpy as jp  # noqa: E402
 import numpy as np  # noqa: E402
 import torch as th  # noqa: E402
 from mujoco_playground import registry  # noqa: E402
+
+from sb3_cgac import CGAC  # noqa: E402
+from sb3_cgac.vec_env.playground_vec_env import use_menagerie  # noqa: E402
+from sb3_cgac.zoo import build_model  # noqa: E402
 
 VALUES = (None, -1.0, -0.5, 0.0, 0.5, 1.0)  # None: the policy's own action
 

@@ -18,11 +18,11 @@ from sb3_cgac.threads import configure_thread_spin
 
 configure_thread_spin()
 
-from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model  # noqa: E402
-
 import numpy as np  # noqa: E402
 import torch as th  # noqa: E402
 from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization  # noqa: E402
+
+from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model  # noqa: E402
 
 
 def main() -> None:

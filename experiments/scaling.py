@@ -25,16 +25,16 @@ import re
 from pathlib import Path
 from typing import Any
 
-from sb3_cgac.compare import new_axis, save_figure
-
 import numpy as np
+
+from sb3_cgac.compare import new_axis, save_figure
 
 
 def action_dims(env_id: str) -> int:
     """Number of action dimensions of an installed env (gymnasium-robotics and MyoSuite registered if present)."""
-    from sb3_cgac.vec_env import register_optional_envs
-
     import gymnasium as gym
+
+    from sb3_cgac.vec_env import register_optional_envs
 
     register_optional_envs()
     if env_id not in gym.registry:

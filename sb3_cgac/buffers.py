@@ -3,13 +3,13 @@
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
-from sb3_cgac.collection import TensorObs, TerminalObservations, set_obs_rows, where_rows
-
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.utils import get_device
+
+from sb3_cgac.collection import TensorObs, TerminalObservations, set_obs_rows, where_rows
 
 # Q-function used for the targets: (observations, actions) -> values of shape (batch,)
 QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]

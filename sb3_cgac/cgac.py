@@ -1,10 +1,20 @@
 from typing import Any, ClassVar, TypeVar
 
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.logger import configure as configure_logger
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TensorDict
+from stable_baselines3.common.vec_env import VecEnv
+
 from sb3_cgac.buffers import CGACRolloutBuffer, samples_from_tensors, samples_to_tensors
 from sb3_cgac.compat import upgrade_saved_attributes
 from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
 from sb3_cgac.distributed import RANK_SEED_STRIDE, start_data_parallel, world
 from sb3_cgac.hyperparameters import (
+    UpdateCost,
     check_action_space,
     check_batch_fits,
     check_hyperparameters,
@@ -23,15 +33,6 @@ from sb3_cgac.losses import (
 )
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
-
-import torch as th
-from gymnasium import spaces
-from stable_baselines3.common.logger import configure as configure_logger
-from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
-from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TensorDict
-from stable_baselines3.common.vec_env import VecEnv
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
 
@@ -104,7 +105,7 @@ class CGAC(WindowOnPolicyAlgorithm):
     actor_avg: Actor
     critic: CGACCritic
     critic_target: CGACCritic
-    # "auto" until _setup_model resolves them to numbers
+    # Set by _setup_model, which resolves the "auto" of the constructor's arguments into numbers
     batch_size: int
     critic_updates_per_step: int
     tau: float
@@ -164,12 +165,10 @@ class CGAC(WindowOnPolicyAlgorithm):
         )
         self.ent_coef = ent_coef  # type: ignore[assignment]
         self.buffer_window = buffer_window
-        self.batch_size = batch_size  # type: ignore[assignment]
-        self.critic_updates_per_step = critic_updates_per_step  # type: ignore[assignment]
         self.policy_delay = policy_delay
         self.gae_horizon = gae_horizon
-        self.tau = tau  # type: ignore[assignment]
-        self.policy_tau = policy_tau  # type: ignore[assignment]
+        # What the constructor was given; _setup_model resolves it into batch_size, critic_updates_per_step, tau, policy_tau
+        self._requested_update_cost = (batch_size, critic_updates_per_step, tau, policy_tau)
         self.predict_tau = predict_tau
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
@@ -180,7 +179,25 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Optimizer | None = None
 
-        check_hyperparameters(self)
+        check_hyperparameters(
+            n_steps=n_steps,
+            buffer_window=buffer_window,
+            policy_delay=policy_delay,
+            batch_size=batch_size,
+            critic_updates_per_step=critic_updates_per_step,
+            tau=tau,
+            policy_tau=policy_tau,
+            gae_horizon=gae_horizon,
+            predict_tau=predict_tau,
+            predict_actor=self.policy_kwargs.get("predict_actor"),
+            gamma=gamma,
+            gae_lambda=gae_lambda,
+            max_grad_norm=max_grad_norm,
+            ent_coef=ent_coef,
+            ent_coef_monotone=ent_coef_monotone,
+            update_precision=update_precision,
+            cuda_graphs=cuda_graphs,
+        )
         if _init_setup_model:
             self._setup_model()
             check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)
@@ -196,7 +213,19 @@ class CGAC(WindowOnPolicyAlgorithm):
         upgrade_saved_attributes(self.__dict__)  # a model loaded from an sb3_cgac 0.1.0 file
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
-        resolve_auto_hyperparameters(self)  # "auto" becomes the number for this device and env count
+        # "auto" becomes the numbers for this device and env count. A loaded model keeps the numbers it was saved with:
+        # SB3's load() sets them before it calls this method
+        requested = [
+            self.__dict__.get(name, value) for name, value in zip(UpdateCost._fields, self._requested_update_cost, strict=True)
+        ]
+        cost = resolve_auto_hyperparameters(
+            *requested,
+            n_envs=self.n_envs,
+            buffer_window=self.buffer_window,
+            policy_delay=self.policy_delay,
+            device=self.device,
+        )
+        self.batch_size, self.critic_updates_per_step, self.tau, self.policy_tau = cost
 
         buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
         self.rollout_buffer = buffer_class(
@@ -374,7 +403,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         # Aliases into the policy (saved with it), state rebuilt by _setup_model, and an attribute of sb3_cgac 0.1.0
         # files (sb3_cgac.compat)
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_obs_keys", "_autocast_dtype", "_update_graphs"]
-        excluded += ["_critic_parameters", "_actor_parameters", "gradient_ratio_average"]
+        excluded += ["_critic_parameters", "_actor_parameters", "gradient_ratio_average", "_requested_update_cost"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

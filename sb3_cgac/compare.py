@@ -41,9 +41,9 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from sb3_cgac.threads import configure_thread_spin
-
 import numpy as np
+
+from sb3_cgac.threads import configure_thread_spin
 
 COLUMNS = ["run", "seed", "steps", "seconds", "mean_return", "mean_length"]
 
@@ -128,13 +128,13 @@ def follow_planned_progress(model: Any, planned_timesteps: int) -> None:
 
 def train_one(args: argparse.Namespace) -> None:
     """Train one (run, seed) pair under the budget, writing its evaluations as it goes."""
-    from sb3_cgac.distributed import init_from_env, leave
-    from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model
-
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.evaluation import evaluate_policy
     from stable_baselines3.common.vec_env import sync_envs_normalization
+
+    from sb3_cgac.distributed import init_from_env, leave
+    from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model
 
     th.set_num_threads(args.threads)
     # Under torchrun (--nproc-per-run) every rank trains on its own envs; rank 0 evaluates and writes, and the budget

@@ -1,6 +1,6 @@
 """
-CGAC's hyperparameter rules: the checks of what a user passes, and what ``"auto"`` resolves to on each device. Pure
-functions, so that scripts use the same rules.
+CGAC's hyperparameter rules: the checks of what a user passes, and what ``"auto"`` resolves to on each device, as
+functions of their arguments, so that scripts use the same rules.
 
 ``"auto"`` depends on where the updates run. On a CPU an update costs in proportion to its batch, so the defaults are
 the update cost of the MuJoCo entries (batch 512, 4 critic updates per step, Polyak rates 0.02 and 0.05). On a GPU a
@@ -10,7 +10,7 @@ Polyak rates adapted to the number of envs.
 
 import math
 import warnings
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch as th
@@ -29,7 +29,7 @@ CPU_CRITIC_UPDATES = 4
 CPU_TAU, CPU_POLICY_TAU = 0.02, 0.05
 # GPU defaults of the update count: 4 below MANY_ENVS envs (a step of few envs brings little new data); from there on
 # enough updates that each collected transition is sampled SAMPLES_PER_TRANSITION times (updates * batch / n_envs),
-# never fewer than the paper's 2: the paper's 2 at 1024 envs, 4 at 2048, 8 at 4096 (where 2 left Pendulum-v1 unlearned)
+# never fewer than the paper's 2 (docs/tuning.md, "Device-dependent update cost")
 MANY_ENVS = 1024
 FEW_ENVS_CRITIC_UPDATES = 4
 SAMPLES_PER_TRANSITION = 8
@@ -64,51 +64,69 @@ def check_choice(name: str, value: Any, choices: tuple[Any, ...], hint: str = ""
         raise ValueError(f"CGAC: unknown {name} {value!r}; choose one of {choices}{hint}.")
 
 
-def check_hyperparameters(model: Any) -> None:
+def check_hyperparameters(
+    *,
+    n_steps: int,
+    buffer_window: int,
+    policy_delay: int,
+    batch_size: int | str,
+    critic_updates_per_step: int | str,
+    tau: float | str,
+    policy_tau: float | str,
+    gae_horizon: int | None,
+    predict_tau: float | None,
+    predict_actor: bool | None,
+    gamma: float,
+    gae_lambda: float,
+    max_grad_norm: float | None,
+    ent_coef: str | float,
+    ent_coef_monotone: bool | str,
+    update_precision: str,
+    cuda_graphs: bool,
+) -> None:
     """
-    Check the constructor arguments of a ``CGAC`` model that do not depend on the env (see ``CGAC`` for their
-    meaning); each error says what is wrong and how to fix it.
+    Check the constructor arguments of ``CGAC`` that do not depend on the env (see ``CGAC`` for their meaning); each
+    error says what is wrong and how to fix it.
 
-    :param model: The model, before ``_setup_model``
+    :param predict_actor: The ``predict_actor`` of the policy_kwargs, if given (None: not given)
     """
-    for name in ("n_steps", "buffer_window", "policy_delay"):
-        positive_int(name, getattr(model, name))
-    if model.n_steps > model.buffer_window:
+    for name, value in (("n_steps", n_steps), ("buffer_window", buffer_window), ("policy_delay", policy_delay)):
+        positive_int(name, value)
+    if n_steps > buffer_window:
         raise ValueError(
-            f"CGAC: n_steps ({model.n_steps}) is larger than buffer_window ({model.buffer_window}): each iteration "
+            f"CGAC: n_steps ({n_steps}) is larger than buffer_window ({buffer_window}): each iteration "
             "writes n_steps new steps per env into a window of buffer_window steps. Lower n_steps or raise "
             "buffer_window (n_steps == buffer_window gives a fresh buffer every rollout)."
         )
-    _auto_or("batch_size", model.batch_size, positive_int)
-    _auto_or("critic_updates_per_step", model.critic_updates_per_step, positive_int)
-    _auto_or("tau", model.tau, _rate)
-    _auto_or("policy_tau", model.policy_tau, _rate)
-    if model.gae_horizon is not None:
-        positive_int("gae_horizon", model.gae_horizon)
-    if model.predict_tau is not None:
-        _rate("predict_tau", model.predict_tau, "None")
-    predict_actor = model.policy_kwargs.get("predict_actor", model.predict_tau is not None)
-    if predict_actor != (model.predict_tau is not None):
+    _auto_or("batch_size", batch_size, positive_int)
+    _auto_or("critic_updates_per_step", critic_updates_per_step, positive_int)
+    _auto_or("tau", tau, _rate)
+    _auto_or("policy_tau", policy_tau, _rate)
+    if gae_horizon is not None:
+        positive_int("gae_horizon", gae_horizon)
+    if predict_tau is not None:
+        _rate("predict_tau", predict_tau, "None")
+    if predict_actor is not None and predict_actor != (predict_tau is not None):
         raise ValueError(
-            f"CGAC: policy_kwargs has predict_actor={predict_actor!r} but predict_tau is {model.predict_tau!r}: the copy "
+            f"CGAC: policy_kwargs has predict_actor={predict_actor!r} but predict_tau is {predict_tau!r}: the copy "
             "of the actor that predict() acts with is averaged at the rate predict_tau. Remove predict_actor from "
             "policy_kwargs and set predict_tau (None: predict() acts with the averaged actor)."
         )
-    if not 0.0 <= model.gamma <= 1.0 or not 0.0 <= model.gae_lambda <= 1.0:
-        raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {model.gamma} and {model.gae_lambda}.")
-    if model.max_grad_norm is not None and model.max_grad_norm <= 0:
-        raise ValueError(f"CGAC: max_grad_norm must be > 0, got {model.max_grad_norm}.")
-    parse_ent_coef(model.ent_coef)
+    if not 0.0 <= gamma <= 1.0 or not 0.0 <= gae_lambda <= 1.0:
+        raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {gamma} and {gae_lambda}.")
+    if max_grad_norm is not None and max_grad_norm <= 0:
+        raise ValueError(f"CGAC: max_grad_norm must be > 0, got {max_grad_norm}.")
+    parse_ent_coef(ent_coef)
     check_choice(
         "ent_coef_monotone",
-        model.ent_coef_monotone,
+        ent_coef_monotone,
         ENT_COEF_CLAMPS,
         ": True is the paper's clamp (alpha never increases), 'above_target' holds alpha only while the entropy is "
         "at or above its target, False leaves it free",
     )
-    check_choice("update_precision", model.update_precision, UPDATE_PRECISIONS)
-    if not isinstance(model.cuda_graphs, bool):
-        raise ValueError(f"CGAC: cuda_graphs must be True or False, got {model.cuda_graphs!r}.")
+    check_choice("update_precision", update_precision, UPDATE_PRECISIONS)
+    if not isinstance(cuda_graphs, bool):
+        raise ValueError(f"CGAC: cuda_graphs must be True or False, got {cuda_graphs!r}.")
 
 
 def parse_ent_coef(ent_coef: str | float) -> tuple[bool, float]:
@@ -206,9 +224,8 @@ def resolve_polyak_rates(
     The Polyak coefficients applied at every actor update. Given values are kept. ``"auto"`` on a CPU: 0.02 and 0.05
     (the MuJoCo entries'). Elsewhere, and for None (models saved by sb3_cgac 0.1.0), the paper's tau_Q and tau_pi,
     meant for 4096 new transitions per update, scaled to the ``m = n_envs * policy_delay / critic_updates_per_step``
-    transitions per actor update here: ``1 - (1 - tau_paper) ** sqrt(4096 / m)``. At 64 envs the paper's per-update
-    rates make the averaged copies lag a third of a 200k-step run; the same rate per transition made training
-    unstable; the square root sits in between.
+    transitions per actor update here: ``1 - (1 - tau_paper) ** sqrt(4096 / m)``, between the paper's rate per update
+    and its rate per transition (docs/tuning.md, "Device-dependent update cost").
     """
     transitions = n_envs * policy_delay / critic_updates_per_step
     exponent = float(np.sqrt(PAPER_TRANSITIONS_PER_ACTOR_UPDATE / transitions))
@@ -224,18 +241,33 @@ def resolve_polyak_rates(
     return resolve(tau, CPU_TAU, PAPER_TAU), resolve(policy_tau, CPU_POLICY_TAU, PAPER_POLICY_TAU)
 
 
-def resolve_auto_hyperparameters(model: Any) -> None:
+class UpdateCost(NamedTuple):
+    """The resolved update cost and averaging of a ``CGAC`` model."""
+
+    batch_size: int
+    critic_updates_per_step: int
+    tau: float
+    policy_tau: float
+
+
+def resolve_auto_hyperparameters(
+    batch_size: int | str | None,
+    critic_updates_per_step: int | str | None,
+    tau: float | str | None,
+    policy_tau: float | str | None,
+    *,
+    n_envs: int,
+    buffer_window: int,
+    policy_delay: int,
+    device: th.device,
+) -> UpdateCost:
     """
-    Replace the ``"auto"`` values of a ``CGAC`` model by the numbers for its device and env count, in place (a loaded
-    model keeps the numbers it was saved with): ``batch_size``, ``critic_updates_per_step``, ``tau``, ``policy_tau``.
+    The numbers that ``"auto"`` (and 0.1.0's None) stand for on ``device`` with ``n_envs`` envs; given numbers are kept.
     """
-    model.batch_size = resolve_batch_size(model.batch_size, model.buffer_window, model.n_envs, model.device)
-    model.critic_updates_per_step = resolve_critic_updates_per_step(
-        model.critic_updates_per_step, model.n_envs, model.batch_size, model.device
-    )
-    model.tau, model.policy_tau = resolve_polyak_rates(
-        model.tau, model.policy_tau, model.n_envs, model.policy_delay, model.critic_updates_per_step, model.device
-    )
+    batch_size = resolve_batch_size(batch_size, buffer_window, n_envs, device)
+    updates = resolve_critic_updates_per_step(critic_updates_per_step, n_envs, batch_size, device)
+    tau, policy_tau = resolve_polyak_rates(tau, policy_tau, n_envs, policy_delay, updates, device)
+    return UpdateCost(batch_size, updates, tau, policy_tau)
 
 
 def native_bfloat16(device: th.device) -> bool:

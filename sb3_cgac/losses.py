@@ -5,10 +5,10 @@ its algorithms).
 
 from collections.abc import Callable
 
-from sb3_cgac.policies import Actor, CGACCritic
-
 import torch as th
 from stable_baselines3.common.type_aliases import PyTorchObs
+
+from sb3_cgac.policies import Actor, CGACCritic
 
 # A concatenation over the ranks of data-parallel training (last dimension)
 Gather = Callable[[th.Tensor], th.Tensor]

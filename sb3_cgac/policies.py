@@ -3,16 +3,6 @@
 import math
 from typing import Any
 
-from sb3_cgac.critics import CGACCritic, xavier_init
-from sb3_cgac.torch_layers import (
-    AllReduce,
-    DictKeysExtractor,
-    DictObsNormalizer,
-    NormalizedFeaturesExtractor,
-    ObsNormalizer,
-    RunningObsNormalizer,
-)
-
 import numpy as np
 import torch as th
 from gymnasium import spaces
@@ -28,6 +18,16 @@ from stable_baselines3.common.torch_layers import (
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
+
+from sb3_cgac.critics import CGACCritic, xavier_init
+from sb3_cgac.torch_layers import (
+    AllReduce,
+    DictKeysExtractor,
+    DictObsNormalizer,
+    NormalizedFeaturesExtractor,
+    ObsNormalizer,
+    RunningObsNormalizer,
+)
 
 # Same caps on the log standard deviation as SB3's SAC
 LOG_STD_MAX = 2

@@ -13,8 +13,6 @@ import io
 import sys
 from typing import Any, ClassVar, TypeVar
 
-from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
-
 import numpy as np
 import torch as th
 from gymnasium import spaces
@@ -23,6 +21,8 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 
 try:
     from rsl_rl.algorithms import PPO

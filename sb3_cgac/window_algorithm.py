@@ -6,18 +6,18 @@ transition, the "next action" its Q-GAE target needs; ``CGAC`` adds the updates.
 
 from typing import Any, TypeVar
 
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+from stable_baselines3.common.vec_env import VecEnv
+
 from sb3_cgac.buffers import CGACRolloutBuffer
 from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
 from sb3_cgac.distributed import DataParallel
 from sb3_cgac.policies import CGACPolicy
 from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 from sb3_cgac.wrappers import warn_synchronised_resets
-
-import numpy as np
-import torch as th
-from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
-from stable_baselines3.common.vec_env import VecEnv
 
 SelfWindowAlgorithm = TypeVar("SelfWindowAlgorithm", bound="WindowOnPolicyAlgorithm")
 

@@ -4,13 +4,13 @@ import warnings
 from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
-from sb3_cgac.hyperparameters import FEW_ENVS
-
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
+
+from sb3_cgac.hyperparameters import FEW_ENVS
 
 
 class RandomFirstEpisodeLength(gym.Wrapper):

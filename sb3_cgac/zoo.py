@@ -17,16 +17,16 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
 
-from sb3_cgac import CGAC
-from sb3_cgac.distributed import init_from_env, leave, world
-from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_backend_task, register_optional_envs
-from sb3_cgac.wrappers import RandomFirstEpisodeLength
-
 import gymnasium as gym
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule
 from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_cgac import CGAC
+from sb3_cgac.distributed import init_from_env, leave, world
+from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_backend_task, register_optional_envs
+from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 try:
     import rl_zoo3.enjoy

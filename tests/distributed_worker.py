@@ -9,16 +9,16 @@ import json
 import sys
 from pathlib import Path
 
-from sb3_cgac import CGAC
-from sb3_cgac.buffers import samples_from_tensors, samples_to_tensors
-from sb3_cgac.distributed import DataParallel, init_from_env, leave
-from sb3_cgac.losses import critic_loss
-
 import torch as th
 import torch.distributed as dist
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_cgac import CGAC
+from sb3_cgac.buffers import samples_from_tensors, samples_to_tensors
+from sb3_cgac.distributed import DataParallel, init_from_env, leave
+from sb3_cgac.losses import critic_loss
 
 
 class FailAt(BaseCallback):

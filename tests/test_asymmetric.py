@@ -1,8 +1,5 @@
 """The asymmetric actor-critic: the actor reads some keys of a Dict observation, the critics others (privileged)."""
 
-from sb3_cgac import CGAC
-from sb3_cgac.export import export_policy
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -10,6 +7,9 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_cgac import CGAC
+from sb3_cgac.export import export_policy
 
 ASYMMETRIC = dict(actor_keys=["state"], critic_keys=["state", "privileged_state"])
 

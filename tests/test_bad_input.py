@@ -1,8 +1,3 @@
-from sb3_cgac import CGAC
-from sb3_cgac.callbacks import ProgressEntropySchedule
-from sb3_cgac.collection import OBS_ABS_LIMIT, sanitize_observations
-from sb3_cgac.policies import CGACPolicy
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -12,6 +7,11 @@ from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnvWrapper
+
+from sb3_cgac import CGAC
+from sb3_cgac.callbacks import ProgressEntropySchedule
+from sb3_cgac.collection import OBS_ABS_LIMIT, sanitize_observations
+from sb3_cgac.policies import CGACPolicy
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16]), seed=0)
 

@@ -1,13 +1,13 @@
 """The critic options: LayerNorm, categorical (HL-Gauss) heads on a symlog support, and how the actor reads the critics."""
 
-from sb3_cgac import CGAC
-from sb3_cgac.critics import SYMLOG_LIMIT, HistogramSupport, symexp, symlog
-from sb3_cgac.losses import actor_loss, critic_loss
-
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from torch import nn
+
+from sb3_cgac import CGAC
+from sb3_cgac.critics import SYMLOG_LIMIT, HistogramSupport, symexp, symlog
+from sb3_cgac.losses import actor_loss, critic_loss
 
 OPTIONS = dict(critic_layer_norm=True, n_bins=51, actor_q_reduction="mean")
 

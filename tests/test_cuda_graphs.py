@@ -5,14 +5,6 @@ there and run on a machine with one); the rest runs on the CPU.
 
 import pathlib
 
-from sb3_cgac import CGAC
-from sb3_cgac.cuda_graphs import (
-    GraphedStep,
-    prepare_optimizers_for_capture,
-    release_optimizers_from_capture,
-    set_learning_rate,
-)
-
 import numpy as np
 import pytest
 import torch as th
@@ -20,6 +12,14 @@ from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import LinearSchedule
 from test_run import DictObsEnv  # tests/ is on sys.path under pytest
+
+from sb3_cgac import CGAC
+from sb3_cgac.cuda_graphs import (
+    GraphedStep,
+    prepare_optimizers_for_capture,
+    release_optimizers_from_capture,
+    set_learning_rate,
+)
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 needs_cuda = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")

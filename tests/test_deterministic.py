@@ -1,9 +1,9 @@
-from sb3_cgac import CGAC
-
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
 
 
 @pytest.mark.parametrize("kwargs", [{}, dict(n_steps=8, buffer_window=8, ent_coef="auto", predict_tau=0.01)])

@@ -6,12 +6,12 @@ import subprocess
 import sys
 import time
 
-from sb3_cgac import CGAC
-
 import numpy as np
 import pytest
 import torch.distributed as dist
 from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
 
 if not dist.is_available():
     pytest.skip("this torch build has no torch.distributed", allow_module_level=True)

@@ -1,8 +1,3 @@
-from sb3_cgac import CGAC
-from sb3_cgac.buffers import samples_to_tensors
-from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
-from sb3_cgac.hyperparameters import resolve_batch_size, resolve_critic_updates_per_step, resolve_polyak_rates
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -10,6 +5,11 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
+from sb3_cgac.buffers import samples_to_tensors
+from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
+from sb3_cgac.hyperparameters import resolve_batch_size, resolve_critic_updates_per_step, resolve_polyak_rates
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 

@@ -1,7 +1,3 @@
-from sb3_cgac import CGAC
-from sb3_cgac.buffers import CGACRolloutBuffer, _linear_recurrence
-from sb3_cgac.collection import TerminalObservations, split_episode_ends
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -9,6 +5,10 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
+from sb3_cgac.buffers import CGACRolloutBuffer, _linear_recurrence
+from sb3_cgac.collection import TerminalObservations, split_episode_ends
 
 GAMMA, LAMBDA = 0.9, 0.8
 OBS_SPACE = spaces.Box(-np.inf, np.inf, (1,), np.float32)

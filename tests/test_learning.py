@@ -6,13 +6,13 @@ so each test runs several seeds with a budget well above the steps they needed h
 
 import pathlib
 
-from sb3_cgac import CGAC
-from sb3_cgac.vec_env import make_vec_env
-
 import pytest
 import torch as th
 import yaml
 from stable_baselines3.common.callbacks import EvalCallback, StopTrainingOnRewardThreshold
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import make_vec_env
 
 HYPERPARAMS = pathlib.Path(__file__).parents[1] / "hyperparams" / "cgac.yml"
 THRESHOLD = -200.0

@@ -9,14 +9,14 @@ import pytest
 if os.environ.get("SB3_CGAC_REQUIRE_MJLAB") != "1":
     pytest.importorskip("mjlab")
 
-from sb3_cgac import CGAC
-from sb3_cgac.vec_env import TorchVecEnv, make_vec_env
-from sb3_cgac.vec_env.mjlab_vec_env import MjlabVectorEnv
-
 import numpy as np
 import torch as th
 from mjlab.envs import ManagerBasedRlEnv
 from mjlab.tasks.registry import load_env_cfg
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import TorchVecEnv, make_vec_env
+from sb3_cgac.vec_env.mjlab_vec_env import MjlabVectorEnv
 
 TASK = "Mjlab-Cartpole-Balance"  # no contacts, 0.05 s per step, time-outs only
 EPISODE = 12

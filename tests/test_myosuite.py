@@ -14,10 +14,10 @@ if os.environ.get("SB3_CGAC_REQUIRE_MYOSUITE"):
 else:
     pytest.importorskip("myosuite")
 
+import gymnasium as gym
+
 from sb3_cgac import CGAC
 from sb3_cgac.vec_env import make_vec_env
-
-import gymnasium as gym
 
 # The tasks of the hyperparameter files: 80 muscles (legs), 290 muscles (legs and torso)
 MYOSUITE_TASKS = ("myoLegWalk-v0", "myoChallengeSoccerP1-v0")

@@ -4,14 +4,14 @@ import csv
 import subprocess
 import sys
 
-from sb3_cgac import CGAC
-from sb3_cgac.collection import split_episode_ends
-from sb3_cgac.vec_env import EnvPoolVecEnv, episode_metrics
-
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.logger import configure
+
+from sb3_cgac import CGAC
+from sb3_cgac.collection import split_episode_ends
+from sb3_cgac.vec_env import EnvPoolVecEnv, episode_metrics
 
 envpool = pytest.importorskip("envpool")
 
@@ -160,9 +160,9 @@ def test_compare_cgac_rsl_ppo_and_ppo_with_metrics(tmp_path):
     task = "MuJoCoPlayground/PandaPickCube-v1"
     require(task)
     pytest.importorskip("rsl_rl")
-    from sb3_cgac.zoo import HYPERPARAMS_DIR
-
     import yaml
+
+    from sb3_cgac.zoo import HYPERPARAMS_DIR
 
     conf = tmp_path / "conf"
     conf.mkdir()

@@ -10,15 +10,15 @@ import pytest
 jax = pytest.importorskip("jax")
 pytest.importorskip("mujoco_playground")
 
-from sb3_cgac import CGAC  # noqa: E402
-from sb3_cgac.vec_env import TorchVecEnv, make_vec_env  # noqa: E402
-from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv, use_menagerie  # noqa: E402
-
 import numpy as np  # noqa: E402
 import torch as th  # noqa: E402
 from brax.envs.wrappers import training as brax_training  # noqa: E402
 from mujoco_playground import registry  # noqa: E402
 from mujoco_playground._src import mjx_env  # noqa: E402
+
+from sb3_cgac import CGAC  # noqa: E402
+from sb3_cgac.vec_env import TorchVecEnv, make_vec_env  # noqa: E402
+from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv, use_menagerie  # noqa: E402
 
 TASK = "CartpoleBalance"
 WARP = importlib.util.find_spec("warp") is not None

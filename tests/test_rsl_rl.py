@@ -6,13 +6,13 @@ import torch as th
 
 pytest.importorskip("rsl_rl")
 
-from sb3_cgac.rsl_rl import RslPPO, RslRlVecEnv
-
 from rsl_rl.runners import OnPolicyRunner
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecNormalize
 from test_asymmetric import PrivilegedEnv
+
+from sb3_cgac.rsl_rl import RslPPO, RslRlVecEnv
 
 SMALL = dict(hidden_dims=[16, 16], obs_normalization=True)
 

@@ -1,6 +1,3 @@
-from sb3_cgac import CGAC, MultiInputPolicy
-from sb3_cgac.callbacks import RewardEntropySchedule
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -13,6 +10,9 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
+
+from sb3_cgac import CGAC, MultiInputPolicy
+from sb3_cgac.callbacks import RewardEntropySchedule
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 

@@ -1,13 +1,13 @@
 import io
 import pathlib
 
-from sb3_cgac import CGAC
-from sb3_cgac.policies import CGACPolicy
-
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_cgac import CGAC
+from sb3_cgac.policies import CGACPolicy
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 # Models saved by sb3_cgac 0.1.0 (git tag v0.1.0): Pendulum-v1, 16 envs, [16, 16] networks, batch 64, 128 steps;

@@ -1,15 +1,15 @@
 """Observation normalisation inside the policy, the learning-rate decay, predict_tau and desynchronised resets."""
 
-from sb3_cgac import CGAC
-from sb3_cgac.policies import CGACPolicy, RunningObsNormalizer
-from sb3_cgac.wrappers import RandomFirstEpisodeLength
-
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import LinearSchedule
+
+from sb3_cgac import CGAC
+from sb3_cgac.policies import CGACPolicy, RunningObsNormalizer
+from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 

@@ -1,9 +1,5 @@
 """The torch-native path: TorchVecEnv's episode contract, and CGAC trained through it equal to the NumPy path."""
 
-from sb3_cgac import CGAC
-from sb3_cgac.callbacks import RewardEntropySchedule
-from sb3_cgac.vec_env import GymnasiumVecEnv, NumpyToTorchVectorEnv, TorchVecEnv, make_vec_env, torch_vec_env
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -11,6 +7,10 @@ import torch as th
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_cgac import CGAC
+from sb3_cgac.callbacks import RewardEntropySchedule
+from sb3_cgac.vec_env import GymnasiumVecEnv, NumpyToTorchVectorEnv, TorchVecEnv, make_vec_env, torch_vec_env
 
 
 class ReachEnv(gym.Env):

@@ -1,13 +1,13 @@
 """The update step's paths: the default float32 path and bfloat16 autocast give the same updates; the critics' loss."""
 
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
 from sb3_cgac import CGAC
 from sb3_cgac.buffers import samples_to_tensors
 from sb3_cgac.hyperparameters import resolve_update_precision
 from sb3_cgac.losses import q_regression_loss
-
-import pytest
-import torch as th
-from stable_baselines3.common.env_util import make_vec_env
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), seed=0, n_steps=4, buffer_window=8, batch_size=64)
 

@@ -1,8 +1,5 @@
 """The vec-env adapters against the plain gymnasium envs, stepped with the same seeds and actions."""
 
-from sb3_cgac import CGAC
-from sb3_cgac.vec_env import EnvPoolVecEnv, GymnasiumVecEnv, make_vec_env
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -10,6 +7,9 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_cgac import CGAC
+from sb3_cgac.vec_env import EnvPoolVecEnv, GymnasiumVecEnv, make_vec_env
 
 envpool = pytest.importorskip("envpool")
 

@@ -14,11 +14,11 @@ import yaml
 
 pytest.importorskip("rl_zoo3")
 
-from sb3_cgac import CGAC
-from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model, register, train
-
 import gymnasium as gym
 import rl_zoo3
+
+from sb3_cgac import CGAC
+from sb3_cgac.zoo import HYPERPARAMS_DIR, algorithm_of, build_model, register, train
 
 ROOT = pathlib.Path(__file__).parents[1]
 YAML_FILES = sorted(path.stem for path in HYPERPARAMS_DIR.glob("*.yml"))
@@ -207,9 +207,9 @@ def test_cgac_entries_resolve_to_their_settings(tmp_path, env_id):
 
 
 def test_compare_schedules_follow_the_planned_timesteps():
-    from sb3_cgac.compare import follow_planned_progress
-
     from stable_baselines3.common.utils import LinearSchedule
+
+    from sb3_cgac.compare import follow_planned_progress
 
     model = CGAC("MlpPolicy", "Pendulum-v1", learning_rate=LinearSchedule(2e-3, 1e-4, 0.5), device="cpu")
     follow_planned_progress(model, 1000)

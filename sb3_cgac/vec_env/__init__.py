@@ -10,16 +10,16 @@ import functools
 from collections.abc import Iterable
 from typing import Any
 
-from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv
-from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv, auto_episode_info
-from sb3_cgac.vec_env.torch_vec_env import NumpyToTorchVectorEnv, TensorStep, TorchVecEnv
-from sb3_cgac.wrappers import RandomFirstEpisodeLength
-
 import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+
+from sb3_cgac.vec_env.envpool_vec_env import EnvPoolVecEnv
+from sb3_cgac.vec_env.gymnasium_vec_env import GymnasiumVecEnv, auto_episode_info
+from sb3_cgac.vec_env.torch_vec_env import NumpyToTorchVectorEnv, TensorStep, TorchVecEnv
+from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
 BACKENDS = ("dummy", "subproc", "envpool", "gymnasium", "gymnasium_async", "gymnasium_torch", "playground", "mjlab")
 # The entries of Monitor's episode dicts; the others are the adapters' episode_info statistics

@@ -5,13 +5,13 @@ import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from sb3_cgac.threads import thread_spin_configured
-from sb3_cgac.vec_env.gymnasium_vec_env import BatchObs, GymnasiumVecEnv
-
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices
+
+from sb3_cgac.threads import thread_spin_configured
+from sb3_cgac.vec_env.gymnasium_vec_env import BatchObs, GymnasiumVecEnv
 
 
 def _import_envpool() -> Any:

@@ -20,13 +20,13 @@ its ``actor_keys`` and ``critic_keys``.
 
 from typing import Any
 
-from sb3_cgac.collection import where_rows
-
 import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
+
+from sb3_cgac.collection import where_rows
 
 try:
     import mjlab.tasks  # noqa: F401  (registers mjlab's tasks)

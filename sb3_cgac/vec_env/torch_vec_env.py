@@ -21,14 +21,14 @@ keeps working, and ``step_tensors`` is the path without NumPy that CGAC takes wh
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
-from sb3_cgac.collection import TensorObs, where_rows
-
 import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
+
+from sb3_cgac.collection import TensorObs, where_rows
 
 
 class TensorStep(NamedTuple):
