@@ -2,7 +2,7 @@
 # The CUDA checks, for a machine with an NVIDIA GPU (CI has none): the CUDA tests, the update benchmark on the GPU,
 # end-to-end steps/s with and without CUDA graphs, then the whole default test suite with every model on the GPU
 # (device "auto"). Each part has its own time limit and a log in OUT_DIR; a failing part does not stop the others.
-# The limits fit a lent machine's short lease (an H200 with 16 cores and pytest-xdist): scale them with
+# The limits fit an H200 with 16 cores and pytest-xdist (about 10 minutes in all): scale them with
 # CUDA_CHECK_TIME_SCALE=4 on a machine without pytest-xdist.
 #   pip install -e ".[tests]" && bash benchmarks/cuda.sh [OUT_DIR]
 set -uo pipefail

@@ -4,8 +4,9 @@
 # graphs of its updates; eager beside them at 4,096), and 3 minutes of learning of CGAC and of rsl_rl's PPO
 # (benchmarks/gpu_playground.py). The table, OUT_DIR/table.md, is rewritten after each measurement, the 4,096-env ones
 # first: a run cut short keeps them, and a measurement that fails is listed there.
-# The GPU machine reaches no registry: first download the wheels here (benchmarks/gpu_wheels.sh, 53 MB with Go1's
-# models), then with the device tool: run(command="bash benchmarks/gpu.sh $OUT", carry=[".whl"], timeout_s=600).
+# Run on a GPU machine with the tests extra and jax[cuda] installed: bash benchmarks/gpu.sh OUT_DIR. A machine without a
+# package registry installs the wheels of a .whl folder beside the repository where its packages are missing: download
+# them beforehand on a machine with one (benchmarks/gpu_wheels.sh, 53 MB with Go1's models) and copy the folder over.
 # The Go1 joystick instead of CheetahRun: append --task Go1JoystickFlatTerrain (not timed on a GPU yet).
 set -uo pipefail
 cd "$(dirname "$0")/.."

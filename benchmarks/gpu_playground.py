@@ -298,7 +298,7 @@ def main() -> int:
     for name, measure in phases(args):
         try:
             measure(results)
-        except Exception as error:  # a one-shot run on a lent GPU: keep what the other phases measure
+        except Exception as error:  # keep what the other phases measure
             traceback.print_exc()
             results["errors"].append(f"{name}: {type(error).__name__}: {str(error)[:300]}")
         gc.collect()  # the phase's envs and model (JAX's and torch's device memory) before the next one

@@ -21,10 +21,9 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 # Rank r's seed is the model's seed + r * RANK_SEED_STRIDE: each rank's envs (seed + i) and minibatches differ
 RANK_SEED_STRIDE = 1_000_000
-# Up to this many gloo ranks, a sum over the ranks is an all-gather and a local sum: gloo's all-reduce takes about
-# 1.5 ms from 1,000 floats on (2 ranks on one 2-core machine, torch 2.13), an all-gather of the critics' gradients
-# (145k floats) 1.0 ms, and the local sum in rank order is the same on every rank. Beyond it the gathered bytes grow
-# with the ranks: all-reduce. NCCL always all-reduces.
+# Up to this many gloo ranks, a sum over the ranks is an all-gather and a local sum in rank order (the same on every
+# rank), which on gloo is faster than its all-reduce for gradient-sized tensors (docs/performance.md, "Data-parallel
+# training on one CPU"). Beyond it the gathered bytes grow with the ranks: all-reduce. NCCL always all-reduces.
 GATHER_SUM_MAX_RANKS = 4
 
 
@@ -58,8 +57,8 @@ def init_from_env(backend: str | None = None, timeout_s: float = 600.0) -> tuple
 def leave() -> None:
     """
     End a rank's process after data-parallel training: wait for every rank, destroy the process group and exit
-    without the interpreter's finalisation, which gloo's threads can abort ("terminate called without an active
-    exception": seen twice in about forty torchrun launches with torch 2.13). Without a process group: nothing.
+    without the interpreter's finalisation, during which gloo's threads can abort the process ("terminate called
+    without an active exception"). Without a process group: nothing.
     """
     if not (dist.is_available() and dist.is_initialized()):
         return
