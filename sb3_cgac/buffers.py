@@ -9,7 +9,8 @@ from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.utils import get_device
 
-from sb3_cgac.collection import TensorObs, TerminalObservations, set_obs_rows, where_rows
+from sb3_cgac.collection import TerminalObservations
+from sb3_cgac.obs_rows import TensorObs, rows, set_rows, where_rows
 
 # Q-function used for the targets: (observations, actions) -> values of shape (batch,)
 QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]
@@ -40,12 +41,6 @@ def _storage_dtype(space: spaces.Space) -> th.dtype:
     if space.dtype is not None and np.issubdtype(space.dtype, np.floating):
         return th.float32
     return th.as_tensor(np.zeros(1, dtype=space.dtype)).dtype
-
-
-def _index_obs(obs: TensorObs, index: th.Tensor | int | slice) -> TensorObs:
-    if isinstance(obs, dict):
-        return {key: value[index] for key, value in obs.items()}
-    return obs[index]
 
 
 def _flatten_obs(obs: TensorObs, n_leading: int) -> TensorObs:
@@ -300,7 +295,7 @@ class CGACRolloutBuffer:
             return
         slots = self._chronological_slots(n_new)
         # Next observations of the new steps: each following step's observation, the current one for the newest
-        next_obs = _index_obs(self.observations, slots[1:])
+        next_obs = rows(self.observations, slots[1:])
         if isinstance(next_obs, dict):
             assert isinstance(self.current_obs, dict)
             next_obs = {key: th.cat([value, self.current_obs[key][None]]) for key, value in next_obs.items()}
@@ -312,20 +307,20 @@ class CGACRolloutBuffer:
         if self.final_observations is not None:  # torch-native envs: every row kept, the truncated ones chosen
             assert self.final_obs_ok is not None
             truncated = self.truncated[slots]
-            next_obs = where_rows(truncated, _index_obs(self.final_observations, slots), next_obs)
+            next_obs = where_rows(truncated, rows(self.final_observations, slots), next_obs)
             next_ok = th.where(truncated, self.final_obs_ok[slots], next_ok)
         # SB3 VecEnvs: the truncated envs' rows (a loop over steps, only when some step holds truncations)
         positions = [(self.pos - n_new + row) % self.buffer_window for row in range(n_new)]
         for row, slot in enumerate(positions):
             terminal = self.terminal_observations[slot]
             if terminal is not None:
-                set_obs_rows(next_obs, (row, terminal.env_indices), terminal.observations)
+                set_rows(next_obs, (row, terminal.env_indices), terminal.observations)
                 next_ok[row, terminal.env_indices] = terminal.ok
         flat_obs = _flatten_obs(next_obs, 2)
         flat_actions = self.next_actions[slots].reshape(-1, self.action_dim)
         values = th.cat(
             [
-                target_q(_index_obs(flat_obs, slice(start, start + max_batch)), flat_actions[start : start + max_batch])
+                target_q(rows(flat_obs, slice(start, start + max_batch)), flat_actions[start : start + max_batch])
                 for start in range(0, flat_actions.shape[0], max_batch)
             ]
         )
@@ -372,7 +367,7 @@ class CGACRolloutBuffer:
         """
         idx = th.randint(0, self.n_transitions, (batch_size,), device=self.device)
         return CGACSamples(
-            observations=_index_obs(_flatten_obs(self.observations, 2), idx),
+            observations=rows(_flatten_obs(self.observations, 2), idx),
             actions=self.actions.view(-1, self.action_dim)[idx],
             returns=self.returns.view(-1)[idx],
             weights=self.weights.view(-1)[idx].float(),
@@ -389,6 +384,6 @@ class CGACRolloutBuffer:
 
     def raw_transition_nbytes(self) -> int:
         """Bytes of the transitions themselves: observation, action, next action, reward and two flags each."""
-        per_step = _nbytes(_index_obs(self.observations, 0)) + 2 * _nbytes(self.actions[0])
+        per_step = _nbytes(rows(self.observations, 0)) + 2 * _nbytes(self.actions[0])
         per_step += _nbytes(self.rewards[0]) + _nbytes(self.terminated[0]) + _nbytes(self.truncated[0])
         return per_step * self.buffer_window

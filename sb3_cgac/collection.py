@@ -11,10 +11,11 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.utils import obs_as_tensor
 
-if TYPE_CHECKING:
-    from sb3_cgac.vec_env import TensorStep
+from sb3_cgac.obs_rows import TensorObs, set_rows, where_rows
 
-TensorObs = th.Tensor | dict[str, th.Tensor]
+if TYPE_CHECKING:
+    from sb3_cgac.vec_env.torch_vec_env import TensorStep
+
 NumpyObs = np.ndarray | dict[str, np.ndarray]
 
 # Observations with a larger magnitude are treated as corrupt, as in the paper's code
@@ -103,19 +104,6 @@ def sanitize_tensor_observations(obs: TensorObs) -> tuple[TensorObs, th.Tensor]:
     return _sanitize_tensor(obs)
 
 
-def where_rows(mask: th.Tensor, chosen: TensorObs, other: TensorObs) -> TensorObs:
-    """Row by row (first dimension, or the first ``mask.dim()``), ``chosen`` where ``mask`` is True, else ``other``."""
-
-    def select(a: th.Tensor, b: th.Tensor) -> th.Tensor:
-        return th.where(mask.reshape(*mask.shape, *([1] * (a.dim() - mask.dim()))), a, b)
-
-    if isinstance(chosen, dict):
-        assert isinstance(other, dict)
-        return {key: select(value, other[key]) for key, value in chosen.items()}
-    assert isinstance(other, th.Tensor)
-    return select(chosen, other)
-
-
 def obs_to_device(obs: TensorObs, device: th.device) -> TensorObs:
     if isinstance(obs, dict):
         return {key: value.to(device) for key, value in obs.items()}
@@ -132,9 +120,9 @@ def bootstrap_observations(
     if terminal is None:
         return obs
     if isinstance(terminal, TerminalObservations):
-        rows = {key: value.clone() for key, value in obs.items()} if isinstance(obs, dict) else obs.clone()
-        set_obs_rows(rows, terminal.env_indices, terminal.observations)
-        return rows
+        copy = {key: value.clone() for key, value in obs.items()} if isinstance(obs, dict) else obs.clone()
+        set_rows(copy, terminal.env_indices, terminal.observations)
+        return copy
     return where_rows(truncated, terminal[0], obs)
 
 
@@ -209,13 +197,3 @@ def _sanitize_tensor(obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
     obs = obs.float()
     ok = (obs.abs() <= OBS_ABS_LIMIT).reshape(len(obs), -1).all(dim=1)
     return th.where(ok.reshape(-1, *([1] * (obs.dim() - 1))), obs, 0.0), ok
-
-
-def set_obs_rows(obs: TensorObs, index: Any, values: TensorObs) -> None:
-    if isinstance(obs, dict):
-        assert isinstance(values, dict)
-        for key, value in obs.items():
-            value[index] = values[key]
-    else:
-        assert isinstance(values, th.Tensor)
-        obs[index] = values

@@ -4,6 +4,7 @@ The collection half of CGAC (as SB3 keeps ``collect_rollouts`` in ``OnPolicyAlgo
 transition, the "next action" its Q-GAE target needs; ``CGAC`` adds the updates.
 """
 
+import warnings
 from typing import Any, TypeVar
 
 import numpy as np
@@ -15,11 +16,32 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_cgac.buffers import CGACRolloutBuffer
 from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
 from sb3_cgac.distributed import DataParallel
+from sb3_cgac.hyperparameters import FEW_ENVS
 from sb3_cgac.policies import CGACPolicy
 from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
-from sb3_cgac.wrappers import warn_synchronised_resets
 
 SelfWindowAlgorithm = TypeVar("SelfWindowAlgorithm", bound="WindowOnPolicyAlgorithm")
+
+
+def warn_synchronised_resets(terminal: Any, n_envs: int) -> bool:
+    """
+    Warn when all envs reached their time limit at the same step (CGAC's rollout collection warns once per model).
+
+    :param terminal: The step's ``(env indices, observations)`` of truncated episodes, or None
+    :param n_envs: Number of envs; fewer than ``FEW_ENVS`` are expected to reset together
+    :return: Whether it warned
+    """
+    if terminal is None or not len(terminal[0]) == n_envs >= FEW_ENVS:
+        return False
+    warnings.warn(
+        "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
+        "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
+        "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
+        "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
+        UserWarning,
+        stacklevel=3,
+    )
+    return True
 
 
 class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):

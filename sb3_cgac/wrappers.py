@@ -1,6 +1,5 @@
 """Gymnasium and SB3 VecEnv wrappers for training with many parallel envs."""
 
-import warnings
 from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
@@ -9,8 +8,6 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
-
-from sb3_cgac.hyperparameters import FEW_ENVS
 
 
 class RandomFirstEpisodeLength(gym.Wrapper):
@@ -67,27 +64,6 @@ class RandomFirstEpisodeLength(gym.Wrapper):
                 truncated = True
         self._episode_ended = bool(terminated or truncated)
         return obs, reward, terminated, truncated, info
-
-
-def warn_synchronised_resets(terminal: Any, n_envs: int) -> bool:
-    """
-    Warn when all envs reached their time limit at the same step (CGAC's rollout collection warns once per model).
-
-    :param terminal: The step's ``(env indices, observations)`` of truncated episodes, or None
-    :param n_envs: Number of envs; fewer than ``FEW_ENVS`` are expected to reset together
-    :return: Whether it warned
-    """
-    if terminal is None or not len(terminal[0]) == n_envs >= FEW_ENVS:
-        return False
-    warnings.warn(
-        "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
-        "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
-        "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
-        "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
-        UserWarning,
-        stacklevel=3,
-    )
-    return True
 
 
 class VecObservationKeys(VecEnvWrapper):

@@ -10,6 +10,8 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
+from sb3_cgac.obs_rows import rows, set_rows
+
 BatchObs = np.ndarray | dict[str, np.ndarray]
 
 EPISODE_AGGREGATIONS = ("sum", "mean", "max", "last")
@@ -34,21 +36,6 @@ def auto_episode_info(infos: Mapping[str, Any], num_envs: int) -> dict[str, str]
 def _per_env_scalars(value: Any, num_envs: int) -> bool:
     array = np.asarray(value)
     return array.shape == (num_envs,) and np.issubdtype(array.dtype, np.number)
-
-
-def _rows(obs: BatchObs, index: Any) -> BatchObs:
-    if isinstance(obs, dict):
-        return {key: value[index] for key, value in obs.items()}
-    return obs[index]
-
-
-def _set_rows(obs: BatchObs, index: np.ndarray, values: BatchObs) -> None:
-    if isinstance(obs, dict):
-        assert isinstance(values, dict)
-        for key, value in obs.items():
-            value[index] = values[key]
-    else:
-        obs[index] = values
 
 
 def _batch_len(obs: BatchObs) -> int:
@@ -175,13 +162,13 @@ class GymnasiumVecEnv(VecEnv):
             if same_step:
                 terminal_obs = infos.get("final_obs")
                 terminal_rows = [
-                    _rows(obs, idx) if cut is not None and cut[idx] else terminal_obs[idx]  # type: ignore[index]
+                    rows(obs, idx) if cut is not None and cut[idx] else terminal_obs[idx]  # type: ignore[index]
                     for idx in done_idx
                 ]
                 if cut is not None:
                     obs = self._reset_finished(obs, cut)
             else:
-                terminal_rows = self._split_rows(_rows(obs, done_idx), len(done_idx))
+                terminal_rows = self._split_rows(rows(obs, done_idx), len(done_idx))
                 obs = self._reset_finished(obs, dones)
             elapsed = round(time.time() - self._start_time, 6)
             for row, idx in enumerate(done_idx):
@@ -255,12 +242,12 @@ class GymnasiumVecEnv(VecEnv):
         reset_obs, reset_infos = self.venv.reset(options={"reset_mask": dones})
         done_idx = np.flatnonzero(dones)
         if _batch_len(reset_obs) == self.num_envs:  # gymnasium returns every env
-            reset_obs = _rows(reset_obs, done_idx)
+            reset_obs = rows(reset_obs, done_idx)
         elif "env_id" in reset_infos:  # envpool returns the reset envs only, with their ids
             order = np.argsort(np.asarray(reset_infos["env_id"]))
-            reset_obs = _rows(reset_obs, order)
+            reset_obs = rows(reset_obs, order)
         obs = {key: np.array(value) for key, value in obs.items()} if isinstance(obs, dict) else np.array(obs)
-        _set_rows(obs, done_idx, reset_obs)
+        set_rows(obs, done_idx, reset_obs)
         return obs
 
     def _info_dicts(self, infos: dict[str, Any]) -> list[dict[str, Any]]:

@@ -26,7 +26,7 @@ import torch as th
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from sb3_cgac.collection import where_rows
+from sb3_cgac.obs_rows import where_rows
 
 try:
     import mjlab.tasks  # noqa: F401  (registers mjlab's tasks)

@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_cgac.collection import TensorObs, where_rows
+from sb3_cgac.obs_rows import TensorObs, where_rows
 
 
 class TensorStep(NamedTuple):
