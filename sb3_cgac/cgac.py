@@ -36,8 +36,8 @@ from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
 
-# Alpha's learning rate is this multiple of the actor's (the paper's code), and follows its schedule
-ENT_COEF_LR_FACTOR = 10.0
+# The learning rate of each optimizer as a multiple of learning_rate: alpha's is 10x the actor's (the paper's code)
+LEARNING_RATE_FACTORS = {"actor": 1.0, "critic": 1.0, "ent_coef": 10.0}
 # What the critic and actor updates return, in order
 CRITIC_STATISTICS = ("critic_loss", "q_mean", "critic_grad_norm")
 ACTOR_STATISTICS = ("actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss")
@@ -251,7 +251,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         if learn_alpha:
             # Optimise log(alpha), as SB3's SAC does
             self.log_ent_coef = th.log(th.ones(1, device=self.device) * init_alpha).requires_grad_(True)
-            lr = ENT_COEF_LR_FACTOR * self.lr_schedule(1)
+            lr = LEARNING_RATE_FACTORS["ent_coef"] * self.lr_schedule(1)
             self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=lr, fused=True)
         else:
             self.ent_coef_tensor = th.tensor(init_alpha, device=self.device)
@@ -259,7 +259,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         space = self.observation_space
         self._obs_keys = list(space.spaces) if isinstance(space, spaces.Dict) else None
         self._update_graphs = UpdateGraphs(
-            self._critic_update, self._actor_update, self._optimizers, self.device, self.cuda_graphs
+            self._critic_update, self._actor_update, lambda: list(self._optimizers().values()), self.device, self.cuda_graphs
         )
 
     def set_random_seed(self, seed: int | None = None) -> None:
@@ -275,9 +275,12 @@ class CGAC(WindowOnPolicyAlgorithm):
         self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
 
-    def _optimizers(self) -> list[th.optim.Optimizer]:
-        """The optimizers of the updates: actor, critics and, when alpha is learned, alpha's."""
-        return [self.actor.optimizer, self.critic.optimizer, *([self.ent_coef_optimizer] if self.ent_coef_optimizer else [])]
+    def _optimizers(self) -> dict[str, th.optim.Optimizer]:
+        """The optimizers of the updates by name: actor, critic and, when alpha is learned, ent_coef."""
+        optimizers = {"actor": self.actor.optimizer, "critic": self.critic.optimizer}
+        if self.ent_coef_optimizer is not None:
+            optimizers["ent_coef"] = self.ent_coef_optimizer
+        return optimizers
 
     def _ent_coef(self) -> th.Tensor:
         """The entropy coefficient alpha, on the device (no host sync)."""
@@ -342,8 +345,9 @@ class CGAC(WindowOnPolicyAlgorithm):
             return  # the window does not hold a minibatch yet
         self.policy.set_training_mode(True)
         learning_rate = self.lr_schedule(self._current_progress_remaining)
-        for optimizer, factor in zip(self._optimizers(), (1.0, 1.0, ENT_COEF_LR_FACTOR), strict=False):
-            set_learning_rate(optimizer, factor * learning_rate)  # in place: CUDA graphs read it from the same memory
+        for name, optimizer in self._optimizers().items():
+            # In place: CUDA graphs read it from the same memory
+            set_learning_rate(optimizer, LEARNING_RATE_FACTORS[name] * learning_rate)
         if self._parallel is not None:  # an entropy schedule that follows each rank's rewards: one target for all
             self.target_entropy_beta = self._parallel.mean_float(self.target_entropy_beta)
         target_entropy = -self.target_entropy_beta * float(get_action_dim(self.action_space))

@@ -80,7 +80,7 @@ def test_set_parameters_keeps_the_tensors_that_graphs_read(tmp_path: pathlib.Pat
     model.save(tmp_path / "model")
     saved = CGAC.load(tmp_path / "model", device="cpu")
     model.learn(8 * 16)  # moves away from the saved state
-    optimizers = model._optimizers()
+    optimizers = list(model._optimizers().values())
     prepare_optimizers_for_capture(optimizers, model.device)
     model._update_graphs.graphs = (GraphedStep(model._critic_update, "critic"), GraphedStep(model._actor_update, "actor"))
     kept = [(dict(optimizer.state), [group["lr"] for group in optimizer.param_groups]) for optimizer in optimizers]
@@ -88,7 +88,9 @@ def test_set_parameters_keeps_the_tensors_that_graphs_read(tmp_path: pathlib.Pat
 
     model.set_parameters(str(tmp_path / "model.zip"), device="cpu")
     assert model._update_graphs.graphs is not None
-    for optimizer, saved_optimizer, (_, lrs), tensors in zip(optimizers, saved._optimizers(), kept, kept_tensors, strict=True):
+    for optimizer, saved_optimizer, (_, lrs), tensors in zip(
+        optimizers, saved._optimizers().values(), kept, kept_tensors, strict=True
+    ):
         for (param, param_state), saved_state in zip(tensors.items(), saved_optimizer.state.values(), strict=True):
             for key, tensor in param_state.items():
                 assert optimizer.state[param][key] is tensor, f"{key}: a captured graph reads this tensor"
