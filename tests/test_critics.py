@@ -94,8 +94,11 @@ def test_actor_q_reduction(reduction):
     assert log_prob.shape == (8,)
 
 
-def test_run_with_every_option():
-    model = make_model(**OPTIONS)
+@pytest.mark.parametrize("update_precision", ["float32", "bfloat16"])
+def test_run_with_every_option(update_precision):
+    env = make_vec_env("Pendulum-v1", n_envs=4, seed=0)
+    policy_kwargs = dict(net_arch=[16, 16], **OPTIONS)
+    model = CGAC("MlpPolicy", env, policy_kwargs=policy_kwargs, update_precision=update_precision, seed=0)
     model.learn(400)
     assert model._n_updates > 0
     assert all(th.isfinite(p).all() for p in model.policy.parameters())
