@@ -146,8 +146,10 @@ def test_corrupt_env_is_a_valid_gym_env():
         check_env(CorruptEnv(), warn=True)
 
 
-def test_nonfinite_data_is_excluded_and_counted(tmp_path):
-    model = CGAC("MlpPolicy", make_vec_env(CorruptEnv, n_envs=8, seed=0), **SMALL)
+@pytest.mark.parametrize("critic_options", [{}, dict(n_bins=21, critic_layer_norm=True)])
+def test_nonfinite_data_is_excluded_and_counted(tmp_path, critic_options):
+    policy_kwargs = dict(net_arch=[16], **critic_options)
+    model = CGAC("MlpPolicy", make_vec_env(CorruptEnv, n_envs=8, seed=0), policy_kwargs=policy_kwargs, seed=0)
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(2000, log_interval=10)
     assert all(th.isfinite(p).all() for p in model.policy.parameters())
