@@ -49,7 +49,7 @@ def symexp(x: th.Tensor) -> th.Tensor:
 class HistogramSupport(nn.Module):
     """
     A fixed categorical support for Q-values: ``n_bins`` equal bins over ``[-SYMLOG_LIMIT, SYMLOG_LIMIT]`` in symlog
-    space, so that one support covers returns from about 0.01 to 20,000 in magnitude with no per-task range. A scalar
+    space, so that one support covers returns up to about 22,000 in magnitude with no per-task range. A scalar
     target (a Q-GAE(lambda) return, paper Eq. 9-10) becomes a distribution by HL-Gauss: the mass of a Gaussian centred
     on its symlog, of standard deviation 0.75 bin widths, that falls in each bin; the critics are trained by
     cross-entropy to it, and their Q-value is the symexp of the expected bin centre.
