@@ -1,6 +1,6 @@
 """Rolling-window rollout buffer for CGAC, with Q-GAE(lambda) value targets (paper Eq. 9-10)."""
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -17,23 +17,12 @@ QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]
 
 
 class CGACSamples(NamedTuple):
+    """A minibatch of the window: the update steps' input."""
+
     observations: TensorObs
     actions: th.Tensor
     returns: th.Tensor
     weights: th.Tensor
-
-
-def samples_to_tensors(data: CGACSamples) -> list[th.Tensor]:
-    """The tensors of a minibatch as a flat list (a Dict observation's values in key order): the update steps' inputs."""
-    observations = list(data.observations.values()) if isinstance(data.observations, dict) else [data.observations]
-    return [*observations, data.actions, data.returns, data.weights]
-
-
-def samples_from_tensors(tensors: Sequence[th.Tensor], obs_keys: Sequence[str] | None) -> CGACSamples:
-    """The inverse of :func:`samples_to_tensors`; ``obs_keys``: the keys of a Dict observation space, else None."""
-    *observations, actions, returns, weights = tensors
-    obs: TensorObs = dict(zip(obs_keys, observations, strict=True)) if obs_keys is not None else observations[0]
-    return CGACSamples(obs, actions, returns, weights)
 
 
 def _storage_dtype(space: spaces.Space) -> th.dtype:

@@ -1,7 +1,6 @@
 from typing import Any, ClassVar, TypeVar
 
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.logger import configure as configure_logger
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
@@ -9,9 +8,10 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TensorDict
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_cgac.buffers import CGACRolloutBuffer, samples_from_tensors, samples_to_tensors
+from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples
 from sb3_cgac.compat import upgrade_saved_attributes
 from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
+from sb3_cgac.diagnostics import check_finite_parameters, read_statistics, total_grad_norm
 from sb3_cgac.distributed import RANK_SEED_STRIDE, start_data_parallel, world
 from sb3_cgac.hyperparameters import (
     UpdateCost,
@@ -23,14 +23,7 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     warn_few_envs,
 )
-from sb3_cgac.losses import (
-    actor_loss,
-    check_finite_parameters,
-    critic_loss,
-    read_statistics,
-    total_grad_norm,
-    update_log_ent_coef,
-)
+from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
 
@@ -38,9 +31,6 @@ SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
 
 # The learning rate of each optimizer as a multiple of learning_rate: alpha's is 10x the actor's (the paper's code)
 LEARNING_RATE_FACTORS = {"actor": 1.0, "critic": 1.0, "ent_coef": 10.0}
-# What the critic and actor updates return, in order
-CRITIC_STATISTICS = ("critic_loss", "q_mean", "critic_grad_norm")
-ACTOR_STATISTICS = ("actor_loss", "actor_grad_norm", "entropy", "ent_coef_loss")
 
 
 class CGAC(WindowOnPolicyAlgorithm):
@@ -256,8 +246,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         else:
             self.ent_coef_tensor = th.tensor(init_alpha, device=self.device)
         self._autocast_dtype = resolve_update_precision(self.update_precision, self.device)
-        space = self.observation_space
-        self._obs_keys = list(space.spaces) if isinstance(space, spaces.Dict) else None
         self._update_graphs = UpdateGraphs(
             self._critic_update, self._actor_update, lambda: list(self._optimizers().values()), self.device, self.cuda_graphs
         )
@@ -286,9 +274,8 @@ class CGAC(WindowOnPolicyAlgorithm):
         """The entropy coefficient alpha, on the device (no host sync)."""
         return self.ent_coef_tensor if self.log_ent_coef is None else th.exp(self.log_ent_coef.detach())
 
-    def _critic_update(self, *minibatch: th.Tensor) -> th.Tensor:
-        """One critic update (paper Eq. 8) on a minibatch given as ``samples_to_tensors`` does; returns its statistics."""
-        data = samples_from_tensors(minibatch, self._obs_keys)
+    def _critic_update(self, data: CGACSamples) -> dict[str, th.Tensor]:
+        """One critic update (paper Eq. 8) on a minibatch; returns its statistics by name."""
         weight_sum = data.weights.sum().clamp_min(1.0)
         gather = self._parallel.gather if self._parallel is not None else None
         loss, q_mean = critic_loss(self.critic, *data, weight_sum, self._autocast_dtype, gather)
@@ -298,14 +285,13 @@ class CGAC(WindowOnPolicyAlgorithm):
             self._parallel.average_gradients(self._critic_parameters)
         grad_norm = th.nn.utils.clip_grad_norm_(self._critic_parameters, self.max_grad_norm)
         self.critic.optimizer.step()
-        return th.stack([loss.detach(), q_mean, grad_norm])
+        return {"critic_loss": loss.detach(), "q_mean": q_mean, "critic_grad_norm": grad_norm}
 
-    def _actor_update(self, target_entropy: th.Tensor, *minibatch: th.Tensor) -> th.Tensor:
+    def _actor_update(self, target_entropy: th.Tensor, data: CGACSamples) -> dict[str, th.Tensor]:
         """
         One actor update (paper Eq. 7), then the entropy coefficient's (Eq. 12) and the Polyak updates of the averaged
-        actor and the target critic; returns the update's statistics.
+        actor and the target critic; returns the update's statistics by name.
         """
-        data = samples_from_tensors(minibatch, self._obs_keys)
         weight_sum = data.weights.sum().clamp_min(1.0)
         ent_coef = self._ent_coef()
         # Only dQ/da is needed for the actor loss: the critics' own gradients are not computed
@@ -328,14 +314,16 @@ class CGAC(WindowOnPolicyAlgorithm):
         grad_norm = total_grad_norm(self._actor_parameters)
         self.actor.optimizer.step()
 
-        ent_coef_loss = th.zeros_like(loss)  # logged only when alpha is learned
+        statistics = {"actor_loss": loss.detach(), "actor_grad_norm": grad_norm}
+        statistics["entropy"] = -(log_prob * data.weights).sum() / weight_sum
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
             average = self._parallel.mean if self._parallel is not None else None
-            ent_coef_loss = update_log_ent_coef(self.log_ent_coef, self.ent_coef_optimizer, *alpha_args, average=average)
-        entropy = -(log_prob * data.weights).sum() / weight_sum
+            statistics["ent_coef_loss"] = update_log_ent_coef(
+                self.log_ent_coef, self.ent_coef_optimizer, *alpha_args, average=average
+            )
         self.policy.polyak_update(self.tau, self.policy_tau, self.predict_tau)
-        return th.stack([loss.detach(), grad_norm, entropy, ent_coef_loss])
+        return statistics
 
     def train(self) -> None:
         """Value targets of the new steps, then critic, actor, entropy-coefficient and Polyak updates on minibatches."""
@@ -356,22 +344,20 @@ class CGAC(WindowOnPolicyAlgorithm):
         # Critic updates on uniform minibatches of the window; every policy_delay-th one also updates the actor,
         # alpha and the averaged copies
         critic_update, actor_update = self._update_graphs.steps()
-        critic_stats, actor_stats = [], []
+        statistics = []
         for _ in range(self.critic_updates_per_step * self.n_steps):
-            minibatch = samples_to_tensors(self.rollout_buffer.sample(self.batch_size))
-            critic_stats.append(critic_update(*minibatch))
+            minibatch = self.rollout_buffer.sample(self.batch_size)
+            statistics.append(critic_update(minibatch))
             self._n_updates += 1
             if self._n_updates % self.policy_delay == 0:
-                actor_stats.append(actor_update(target_entropy_tensor, *minibatch))
+                statistics.append(actor_update(target_entropy_tensor, minibatch))
         self.policy.set_training_mode(False)
 
         # One read from the device per iteration (no host sync inside the update loop): finiteness and statistics
         finite = self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef]))
         scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": th.exp(self.actor.log_std.detach()).mean()}
-        stats = read_statistics(scalars, {CRITIC_STATISTICS: critic_stats, ACTOR_STATISTICS: actor_stats})
+        stats = read_statistics(scalars, statistics)
         check_finite_parameters(bool(stats.pop("finite")), self._n_updates)
-        if self.ent_coef_optimizer is None:
-            stats.pop("ent_coef_loss", None)
         stats.update(target_entropy=target_entropy, beta=self.target_entropy_beta, tau=self.tau, policy_tau=self.policy_tau)
         stats.update(learning_rate=learning_rate)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
@@ -406,7 +392,7 @@ class CGAC(WindowOnPolicyAlgorithm):
     def _excluded_save_params(self) -> list[str]:
         # Aliases into the policy (saved with it), state rebuilt by _setup_model, and an attribute of sb3_cgac 0.1.0
         # files (sb3_cgac.compat)
-        excluded = ["actor", "actor_avg", "critic", "critic_target", "_obs_keys", "_autocast_dtype", "_update_graphs"]
+        excluded = ["actor", "actor_avg", "critic", "critic_target", "_autocast_dtype", "_update_graphs"]
         excluded += ["_critic_parameters", "_actor_parameters", "gradient_ratio_average", "_requested_update_cost"]
         return [*super()._excluded_save_params(), *excluded]
 

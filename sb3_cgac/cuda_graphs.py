@@ -16,45 +16,52 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 import torch as th
+from torch.utils import _pytree as pytree
 
 
 class GraphedStep:
     """
     A step function of fixed-shape tensors, run eagerly for its first ``warmup`` calls, then captured once as a CUDA
     graph and replayed: each call copies its inputs into the graph's static inputs and returns a copy of its output.
+    Inputs and output may be structures of tensors (tuples, NamedTuples, dicts): the same structure at every call.
 
     The eager calls run on a side stream, as capture requires: they initialise what is created lazily at a first call
     (optimizer states, cuBLAS workspaces), which must exist before the capture. They are real steps, not discarded.
 
-    :param function: The step: it may read its tensor arguments and the state of modules and optimizers, which it
-        updates in place, and returns one tensor; it must not synchronise with the host (no ``.item()``)
+    :param function: The step: it may read its arguments (tensors, or structures of them) and the state of modules
+        and optimizers, which it updates in place, and returns tensors (e.g. a dict of statistics); it must not
+        synchronise with the host (no ``.item()``)
     :param name: What the step is, for error messages
     :param warmup: Eager calls before the capture
     """
 
-    def __init__(self, function: Callable[..., th.Tensor], name: str, warmup: int = 3):
+    def __init__(self, function: Callable[..., Any], name: str, warmup: int = 3):
         self.function = function
         self.name = name
         self.warmup = warmup
         self.eager_calls = 0
         self.graph: th.cuda.CUDAGraph | None = None
         self.static_inputs: list[th.Tensor] = []
-        self.static_output: th.Tensor | None = None
+        self.input_structure: pytree.TreeSpec | None = None
+        self.static_output: Any = None
         self.side_stream: th.cuda.Stream | None = None
 
-    def __call__(self, *inputs: th.Tensor) -> th.Tensor:
+    def __call__(self, *inputs: Any) -> Any:
         if self.graph is None:
             if self.eager_calls < self.warmup:
                 self.eager_calls += 1
                 return self._side_stream_call(inputs)
             self._capture(inputs)
-        for static, value in zip(self.static_inputs, inputs, strict=True):
+        leaves, structure = pytree.tree_flatten(inputs)
+        if structure != self.input_structure:
+            raise ValueError(f"CGAC: the {self.name} was captured for inputs {self.input_structure}, called with {structure}.")
+        for static, value in zip(self.static_inputs, leaves, strict=True):
             static.copy_(value)
-        assert self.graph is not None and self.static_output is not None
+        assert self.graph is not None
         self.graph.replay()
-        return self.static_output.clone()  # the next replay overwrites the static output
+        return pytree.tree_map(th.clone, self.static_output)  # the next replay overwrites the static output
 
-    def _side_stream_call(self, inputs: Sequence[th.Tensor]) -> th.Tensor:
+    def _side_stream_call(self, inputs: Sequence[Any]) -> Any:
         if self.side_stream is None:
             self.side_stream = th.cuda.Stream()
         stream = self.side_stream
@@ -64,12 +71,14 @@ class GraphedStep:
         th.cuda.current_stream().wait_stream(stream)
         return output
 
-    def _capture(self, inputs: Sequence[th.Tensor]) -> None:
-        self.static_inputs = [value.clone() for value in inputs]
+    def _capture(self, inputs: Sequence[Any]) -> None:
+        leaves, self.input_structure = pytree.tree_flatten(inputs)
+        self.static_inputs = [value.clone() for value in leaves]
+        static_inputs = pytree.tree_unflatten(self.static_inputs, self.input_structure)
         graph = th.cuda.CUDAGraph()
         try:
             with th.cuda.graph(graph):
-                self.static_output = self.function(*self.static_inputs)
+                self.static_output = self.function(*static_inputs)
         except RuntimeError as error:
             raise RuntimeError(
                 f"CGAC: the CUDA graph capture of the {self.name} failed: {error}\nSomething in the step needs the host "
@@ -179,8 +188,8 @@ class UpdateGraphs:
     The critic and actor updates of a model, eager or replayed as CUDA graphs (made at the first call of ``steps``),
     and what a load of saved parameters must do to the optimizers the graphs read.
 
-    :param critic_update: The critic update function (tensors in, one tensor of statistics out)
-    :param actor_update: The actor update function, likewise
+    :param critic_update: The critic update function (a minibatch in, a dict of statistics out)
+    :param actor_update: The actor update function, likewise (the target entropy and a minibatch in)
     :param optimizers: The optimizers the updates step (called when needed: a load may replace them)
     :param device: The device of the updates
     :param enabled: Whether to capture CUDA graphs (on a CUDA device only; elsewhere a warning and eager updates)
@@ -188,8 +197,8 @@ class UpdateGraphs:
 
     def __init__(
         self,
-        critic_update: Callable[..., th.Tensor],
-        actor_update: Callable[..., th.Tensor],
+        critic_update: Callable[..., Any],
+        actor_update: Callable[..., Any],
         optimizers: Callable[[], list[th.optim.Optimizer]],
         device: th.device,
         enabled: bool,
@@ -205,7 +214,7 @@ class UpdateGraphs:
         if self.enabled:
             check_capturable(optimizers())
 
-    def steps(self) -> tuple[Callable[..., th.Tensor], Callable[..., th.Tensor]]:
+    def steps(self) -> tuple[Callable[..., Any], Callable[..., Any]]:
         """The critic and actor update functions: the eager ones, or their CUDA graphs."""
         if not self.enabled:
             return self.critic_update, self.actor_update

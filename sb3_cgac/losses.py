@@ -165,36 +165,3 @@ def update_log_ent_coef(
         with th.no_grad():
             log_ent_coef.copy_(clamped_log_ent_coef(log_ent_coef, previous, entropy_gap, mode))
     return loss.detach()
-
-
-def total_grad_norm(parameters: list[th.Tensor]) -> th.Tensor:
-    """The norm of all gradients together, as ``torch.nn.utils.get_total_norm`` (torch >= 2.6 only) computes it."""
-    grads = [param.grad for param in parameters if param.grad is not None]
-    return th.linalg.vector_norm(th.stack(th._foreach_norm(grads)))
-
-
-def read_statistics(scalars: dict[str, th.Tensor], updates: dict[tuple[str, ...], list[th.Tensor]]) -> dict[str, float]:
-    """
-    Read an iteration's statistics from the device in one transfer (no host sync inside the update loop).
-
-    :param scalars: One-element tensors by name
-    :param updates: For each kind of update, the names of its statistics and the stacked statistics of each update
-        of that kind (none: left out)
-    :return: The scalars, and the mean of each statistic over the updates, by name
-    """
-    names, tensors = list(scalars), [value.reshape(()).float() for value in scalars.values()]
-    for update_names, stacked in updates.items():
-        if stacked:
-            names += update_names
-            tensors += [*th.stack(stacked).mean(dim=0)]
-    return dict(zip(names, th.stack(tensors).tolist(), strict=True))
-
-
-def check_finite_parameters(finite: bool, n_updates: int) -> None:
-    """Stop training with the likely causes once a parameter became NaN/Inf (it cannot recover)."""
-    if not finite:
-        raise RuntimeError(
-            f"CGAC: network parameters became NaN/Inf after {n_updates} critic updates; training cannot go on. "
-            "Common causes: exploding rewards or observations (wrap the env in VecNormalize), a learning rate "
-            "too high, or gradient clipping turned off (max_grad_norm)."
-        )

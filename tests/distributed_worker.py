@@ -16,7 +16,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import samples_from_tensors, samples_to_tensors
+from sb3_cgac.buffers import CGACSamples
 from sb3_cgac.distributed import DataParallel, init_from_env, leave
 from sb3_cgac.losses import critic_loss
 
@@ -76,8 +76,7 @@ def main() -> None:
     elif check == "gradients":
         model.learn(8 * 20)  # fill the window; then one critic gradient on each rank's own minibatch
         parallel = DataParallel(model.device)
-        minibatch = samples_to_tensors(model.rollout_buffer.sample(model.batch_size))
-        data = samples_from_tensors(minibatch, None)
+        data = model.rollout_buffer.sample(model.batch_size)
         reference = copy.deepcopy(model.critic)  # the same parameters on both ranks, before the update
         loss, _ = critic_loss(model.critic, *data, data.weights.sum().clamp_min(1.0), None, parallel.gather)
         model.critic.zero_grad()
@@ -86,11 +85,11 @@ def main() -> None:
         averaged = th.cat([param.grad.reshape(-1) for param in model.critic.parameters()])
         # One process that sees both ranks' minibatches
         gathered = []
-        for tensor in minibatch:
+        for tensor in data:  # a Box observation: every field is a tensor
             parts = [th.zeros_like(tensor) for _ in range(world_size)]
             dist.all_gather(parts, tensor.contiguous())
             gathered.append(th.cat(parts))
-        union = samples_from_tensors(tuple(gathered), None)
+        union = CGACSamples(*gathered)
         loss, _ = critic_loss(reference, *union, union.weights.sum().clamp_min(1.0), None)
         reference.zero_grad()
         loss.backward()

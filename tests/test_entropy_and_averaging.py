@@ -7,7 +7,6 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import samples_to_tensors
 from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
 from sb3_cgac.hyperparameters import resolve_batch_size, resolve_critic_updates_per_step, resolve_polyak_rates
 
@@ -88,13 +87,13 @@ def test_alpha_clamp_releases_only_below_target():
     """One update by hand: with the entropy above target the clamp holds, below it alpha follows Adam up."""
     model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), **SMALL)
     model.learn(400)
-    minibatch = samples_to_tensors(model.rollout_buffer.sample(64))
+    minibatch = model.rollout_buffer.sample(64)
     # Momentum that pushes log(alpha) up, whatever this batch's gradient says
     model.log_ent_coef.grad = th.tensor([-1e6], device=model.device)
     model.ent_coef_optimizer.step()
     for target_entropy, may_rise in ((-100.0, False), (100.0, True)):
         before = model.log_ent_coef.item()
-        model._actor_update(th.tensor(target_entropy), *minibatch)
+        model._actor_update(th.tensor(target_entropy), minibatch)
         if may_rise:
             assert model.log_ent_coef.item() > before
         else:

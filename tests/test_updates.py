@@ -5,7 +5,6 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_cgac import CGAC
-from sb3_cgac.buffers import samples_to_tensors
 from sb3_cgac.hyperparameters import resolve_update_precision
 from sb3_cgac.losses import q_regression_loss
 
@@ -21,10 +20,10 @@ def filled_model(**kwargs) -> CGAC:
 def one_update(model: CGAC) -> dict[str, th.Tensor]:
     """Critic and actor losses of one update from the model's current state, on a fixed minibatch."""
     th.manual_seed(1)
-    minibatch = samples_to_tensors(model.rollout_buffer.sample(64))
-    critic_loss = model._critic_update(*minibatch)[0]
-    actor_loss, _, entropy, _ = model._actor_update(th.tensor(-1.0), *minibatch)
-    return {"critic_loss": critic_loss, "actor_loss": actor_loss, "entropy": entropy}
+    minibatch = model.rollout_buffer.sample(64)
+    critic_loss = model._critic_update(minibatch)["critic_loss"]
+    actor = model._actor_update(th.tensor(-1.0), minibatch)
+    return {"critic_loss": critic_loss, "actor_loss": actor["actor_loss"], "entropy": actor["entropy"]}
 
 
 def test_q_regression_loss():
