@@ -3,6 +3,7 @@ CUDA graphs of the updates (``cuda_graphs=True``). The capture itself needs a GP
 there and run on a machine with one); the rest runs on the CPU.
 """
 
+import contextlib
 import pathlib
 
 import numpy as np
@@ -14,6 +15,7 @@ from stable_baselines3.common.utils import LinearSchedule
 from test_run import DictObsEnv  # tests/ is on sys.path under pytest
 
 from sb3_cgac import CGAC
+from sb3_cgac.buffers import CGACSamples
 from sb3_cgac.cuda_graphs import (
     GraphedStep,
     prepare_optimizers_for_capture,
@@ -27,6 +29,37 @@ needs_cuda = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA
 
 def make_env(n_envs: int = 8):
     return make_vec_env("Pendulum-v1", n_envs=n_envs, seed=0)
+
+
+def test_graphed_step_takes_and_returns_structures(monkeypatch):
+    """
+    GraphedStep's plumbing on the CPU, with a stand-in for CUDA's graph whose replay runs the captured function again
+    on the static inputs and writes its output into the static output's memory, as a replayed graph does.
+    """
+    step: GraphedStep
+
+    class ReplayingGraph:
+        def replay(self) -> None:
+            inputs = th.utils._pytree.tree_unflatten(step.static_inputs, step.input_structure)
+            th.utils._pytree.tree_map(lambda static, new: static.copy_(new), step.static_output, step.function(*inputs))
+
+    monkeypatch.setattr(th.cuda, "CUDAGraph", ReplayingGraph)
+    monkeypatch.setattr(th.cuda, "graph", lambda graph: contextlib.nullcontext())
+
+    def update(scale: th.Tensor, data: CGACSamples) -> dict[str, th.Tensor]:
+        return {"sum": (data.actions * scale).sum(), "obs": data.observations["state"].mean() + data.returns.sum()}
+
+    def minibatch(value: float) -> CGACSamples:
+        return CGACSamples({"state": th.full((4, 3), value)}, th.full((4, 2), value), th.full((4,), value), th.ones(4))
+
+    step = GraphedStep(update, "test update", warmup=0)
+    for scale, value in ((2.0, 1.0), (3.0, 5.0)):  # the capture, then a replay with new inputs
+        output = step(th.tensor(scale), minibatch(value))
+        expected = update(th.tensor(scale), minibatch(value))
+        assert output.keys() == expected.keys() and all(th.equal(output[key], expected[key]) for key in expected)
+        assert output["sum"] is not step.static_output["sum"]  # a copy: the next replay overwrites the static output
+    with pytest.raises(ValueError, match="captured for inputs"):
+        step(th.tensor(1.0), minibatch(1.0)._replace(observations=th.zeros(4, 3)))
 
 
 def test_set_learning_rate_in_place():
