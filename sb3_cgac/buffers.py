@@ -9,8 +9,8 @@ from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.utils import get_device
 
-from sb3_cgac.collection import TerminalObservations
-from sb3_cgac.obs_rows import TensorObs, rows, set_rows, where_rows
+from sb3_cgac.collection import EnvStep
+from sb3_cgac.obs_rows import TensorObs, rows, where_rows
 
 # Q-function used for the targets: (observations, actions) -> values of shape (batch,)
 QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]
@@ -42,13 +42,13 @@ def _flatten_obs(obs: TensorObs, n_leading: int) -> TensorObs:
     return flatten(obs)
 
 
-def _write_row(storage: th.Tensor, index: int | slice, value: th.Tensor | np.ndarray) -> None:
-    # Runs several times per env step: on CPU a numpy write into the tensor's memory costs a fraction of torch's
+def _write_row(storage: th.Tensor, index: int | slice, value: th.Tensor) -> None:
+    # Runs several times per env step: on CPU a write through NumPy views of the same memory costs a fraction of torch's
     # indexing and dispatch (the first torch ops after a blocking env step are slow, their code is out of cache)
-    if storage.device.type == "cpu":
-        storage.numpy()[index] = value.numpy() if isinstance(value, th.Tensor) else value
+    if storage.device.type == "cpu" and value.device.type == "cpu":
+        storage.numpy()[index] = value.numpy()
     else:
-        storage[index] = th.as_tensor(value, device=storage.device)
+        storage[index] = value
 
 
 def _nbytes(obs: TensorObs) -> int:
@@ -81,7 +81,8 @@ class CGACRolloutBuffer:
     truncation flags and the *next action*: a fresh sample of the averaged actor at the next observation,
     or at the real terminal observation for a time-limit truncation. The next observation is not stored
     again: it is the following step's observation, the ``current observation`` of the buffer for the newest
-    step, or the kept terminal observation of a truncated episode.
+    step, or the real last observation of a truncated episode (kept, for every env, in a second array of the
+    observations' size, allocated at the first truncation; only its truncated rows are read).
 
     Before the updates, :meth:`compute_returns` evaluates the min-of-twin target Q at (next observation, next
     action) for the steps added since its last call only (``Qbar``, computed once as in the paper's code), then
@@ -145,8 +146,7 @@ class CGACRolloutBuffer:
         self.returns = th.zeros(shape, device=self.device)
         # Whether each transition takes part in the losses (the sampled weight), 1 byte each
         self.weights = th.zeros(shape, dtype=th.bool, device=self.device)
-        self.terminal_observations: list[TerminalObservations | None] = [None] * self.buffer_window
-        # Torch-native envs: every env's final observation at every step (only the truncated rows are read), so that
+        # Every env's final observation at the steps that hold truncations (only the truncated rows are read), so that
         # adding a step needs no host sync; allocated at the first such step
         self.final_observations: TensorObs | None = None
         self.final_obs_ok: th.Tensor | None = None
@@ -157,14 +157,13 @@ class CGACRolloutBuffer:
         self.size = 0
         # Newest steps whose Qbar and validity are not computed yet
         self.n_pending = 0
-        # Transitions with a non-finite or huge observation or reward, since the last reset (torch-native envs
-        # count them on the device: read once per rollout by the n_nonfinite property)
-        self._n_nonfinite = 0
-        self._n_nonfinite_device = th.zeros((), dtype=th.int64, device=self.device)
+        # Transitions with a non-finite or huge observation or reward since the last reset, counted on the device
+        # without a host sync: read when the logs are written (the n_nonfinite property)
+        self._n_nonfinite = th.zeros((), dtype=th.int64, device=self.device)
 
     @property
     def n_nonfinite(self) -> int:
-        return self._n_nonfinite + int(self._n_nonfinite_device.item())
+        return int(self._n_nonfinite.item())
 
     @property
     def n_transitions(self) -> int:
@@ -180,7 +179,7 @@ class CGACRolloutBuffer:
             assert isinstance(obs, th.Tensor)
             _write_row(storage, index, obs)
 
-    def set_current_obs(self, obs: TensorObs, obs_ok: np.ndarray | th.Tensor) -> None:
+    def set_current_obs(self, obs: TensorObs, obs_ok: th.Tensor) -> None:
         """
         Set the observation the next step starts from (after a reset of the envs).
 
@@ -190,45 +189,23 @@ class CGACRolloutBuffer:
         self._write_obs(self.current_obs, slice(None), obs)
         _write_row(self.current_obs_ok, slice(None), obs_ok)
 
-    def add(
-        self,
-        actions: th.Tensor,
-        rewards: np.ndarray | th.Tensor,
-        terminated: np.ndarray | th.Tensor,
-        truncated: np.ndarray | th.Tensor,
-        next_obs: TensorObs,
-        next_obs_ok: np.ndarray | th.Tensor,
-        next_actions: th.Tensor,
-        terminal: TerminalObservations | tuple[TensorObs, th.Tensor] | None = None,
-    ) -> None:
+    def add(self, actions: th.Tensor, step: EnvStep, next_actions: th.Tensor) -> None:
         """
-        Store one step of all envs; the step starts from the current observation, which becomes ``next_obs``.
-        The flags and rewards are NumPy arrays (SB3 VecEnvs) or tensors (torch-native envs, no host sync).
+        Store one step of all envs; the step starts from the current observation, which becomes the step's observation.
 
         :param actions: Squashed actions taken, shape (n_envs, action_dim)
-        :param rewards: Rewards, shape (n_envs,)
-        :param terminated: True where the episode ended in a terminal state
-        :param truncated: True where the episode was cut by a time limit (the env was reset)
-        :param next_obs: Sanitized observations after the step (after the reset for finished episodes)
-        :param next_obs_ok: Which rows of ``next_obs`` were finite before sanitizing
-        :param next_actions: Averaged-actor samples at the next observation, or at the terminal observation
+        :param step: What the envs gave (``sb3_cgac.collection``): rewards, flags, observations after the resets and
+            the real last observations of the truncated episodes
+        :param next_actions: Averaged-actor samples at the next observation, or at the real last observation
             for truncated envs, shape (n_envs, action_dim)
-        :param terminal: Terminal observations of the truncated envs: ``TerminalObservations`` (NumPy path), or
-            (final observations of every env, their validity) for torch-native envs, of which the truncated rows count
         """
         pos = self.pos
-        if isinstance(rewards, th.Tensor):
-            rewards, rewards_ok = self._count_nonfinite_tensors(rewards, next_obs_ok, truncated, terminal)  # type: ignore[arg-type]
-        else:
-            rewards = np.asarray(rewards, dtype=np.float32)
-            rewards_ok = np.isfinite(rewards)
-            next_obs_ok = np.asarray(next_obs_ok)
-            # Counting costs a few array operations: only done when something is not finite (rarely)
-            if not (rewards_ok.all() and next_obs_ok.all()):
-                rewards = np.where(rewards_ok, rewards, 0.0).astype(np.float32)
-                self._n_nonfinite += int(np.count_nonzero(~rewards_ok | ~next_obs_ok))
-            if isinstance(terminal, TerminalObservations):
-                self._n_nonfinite += int(terminal.env_indices.numel() - terminal.ok.sum().item())
+        rewards_ok = th.isfinite(step.rewards)
+        rewards = th.where(rewards_ok, step.rewards, 0.0)
+        excluded = ~rewards_ok | ~step.obs_ok
+        if step.final_ok is not None:
+            excluded |= step.truncated & ~step.final_ok
+        self._n_nonfinite += excluded.sum()
 
         self._write_obs(self.observations, pos, self.current_obs)
         _write_row(self.obs_ok, pos, self.current_obs_ok)
@@ -236,28 +213,16 @@ class CGACRolloutBuffer:
         _write_row(self.next_actions, pos, next_actions)
         _write_row(self.rewards, pos, rewards)
         _write_row(self.reward_ok, pos, rewards_ok)
-        _write_row(self.terminated, pos, terminated)
-        _write_row(self.truncated, pos, truncated)
-        if isinstance(terminal, tuple) and not isinstance(terminal, TerminalObservations):
-            self._write_final_observations(pos, *terminal)
-        else:
-            self.terminal_observations[pos] = terminal
-        self.set_current_obs(next_obs, next_obs_ok)
+        _write_row(self.terminated, pos, step.terminated)
+        _write_row(self.truncated, pos, step.truncated)
+        if step.final_observations is not None:
+            assert step.final_ok is not None
+            self._write_final_observations(pos, step.final_observations, step.final_ok)
+        self.set_current_obs(step.observations, step.obs_ok)
 
         self.pos = (pos + 1) % self.buffer_window
         self.size = min(self.size + 1, self.buffer_window)
         self.n_pending = min(self.n_pending + 1, self.buffer_window)
-
-    def _count_nonfinite_tensors(
-        self, rewards: th.Tensor, next_obs_ok: th.Tensor, truncated: th.Tensor, terminal: tuple[TensorObs, th.Tensor] | None
-    ) -> tuple[th.Tensor, th.Tensor]:
-        rewards = rewards.to(self.device, th.float32)
-        rewards_ok = th.isfinite(rewards)
-        bad = ~rewards_ok | ~next_obs_ok
-        if terminal is not None:
-            bad |= truncated & ~terminal[1]
-        self._n_nonfinite_device += bad.sum()
-        return th.where(rewards_ok, rewards, 0.0), rewards_ok
 
     def _write_final_observations(self, pos: int, final_obs: TensorObs, final_ok: th.Tensor) -> None:
         if self.final_observations is None:
@@ -292,19 +257,12 @@ class CGACRolloutBuffer:
             assert isinstance(self.current_obs, th.Tensor)
             next_obs = th.cat([next_obs, self.current_obs[None]])
         next_ok = th.cat([self.obs_ok[slots[1:]], self.current_obs_ok[None]])
-        # Time-limit truncations bootstrap from the real terminal observation (paper Sec. 4.1)
-        if self.final_observations is not None:  # torch-native envs: every row kept, the truncated ones chosen
+        # Time-limit truncations bootstrap from the real last observation (paper Sec. 4.1)
+        if self.final_observations is not None:
             assert self.final_obs_ok is not None
             truncated = self.truncated[slots]
             next_obs = where_rows(truncated, rows(self.final_observations, slots), next_obs)
             next_ok = th.where(truncated, self.final_obs_ok[slots], next_ok)
-        # SB3 VecEnvs: the truncated envs' rows (a loop over steps, only when some step holds truncations)
-        positions = [(self.pos - n_new + row) % self.buffer_window for row in range(n_new)]
-        for row, slot in enumerate(positions):
-            terminal = self.terminal_observations[slot]
-            if terminal is not None:
-                set_rows(next_obs, (row, terminal.env_indices), terminal.observations)
-                next_ok[row, terminal.env_indices] = terminal.ok
         flat_obs = _flatten_obs(next_obs, 2)
         flat_actions = self.next_actions[slots].reshape(-1, self.action_dim)
         values = th.cat(
@@ -363,13 +321,13 @@ class CGACRolloutBuffer:
         )
 
     def nbytes(self) -> int:
-        """Memory held by the buffer, terminal observations included."""
+        """Memory held by the buffer, final observations included."""
         tensors = [self.actions, self.next_actions, self.rewards, self.terminated, self.truncated]
         tensors += [self.obs_ok, self.reward_ok, self.next_values, self.returns, self.weights, self.current_obs_ok]
         total = _nbytes(self.observations) + _nbytes(self.current_obs) + sum(_nbytes(t) for t in tensors)
         if self.final_observations is not None:
             total += _nbytes(self.final_observations)
-        return total + sum(_nbytes(t.observations) for t in self.terminal_observations if t is not None)
+        return total
 
     def raw_transition_nbytes(self) -> int:
         """Bytes of the transitions themselves: observation, action, next action, reward and two flags each."""

@@ -1,4 +1,7 @@
-"""Row operations on batches of observations: one array or tensor, or a dict of them for a Dict observation space."""
+"""
+Batches of one row per env: row operations on observations (one array or tensor, or a dict of them for a Dict
+observation space), and the test of an info entry that holds one number per env.
+"""
 
 from typing import Any, overload
 
@@ -43,3 +46,11 @@ def where_rows(mask: th.Tensor, chosen: TensorObs, other: TensorObs) -> TensorOb
         return {key: select(value, other[key]) for key, value in chosen.items()}
     assert isinstance(other, th.Tensor)
     return select(chosen, other)
+
+
+def per_env_numbers(value: Any, num_envs: int) -> bool:
+    """Whether ``value`` (an info entry of a vector env) holds one number per env: shape (num_envs,), numbers."""
+    if isinstance(value, th.Tensor):
+        return tuple(value.shape) == (num_envs,) and value.dtype != th.bool
+    array = np.asarray(value)
+    return array.shape == (num_envs,) and np.issubdtype(array.dtype, np.number)

@@ -436,7 +436,7 @@ class CGACPolicy(BasePolicy):
             return features_extractor
         return NormalizedFeaturesExtractor(self.observation_space, features_extractor, self.obs_normalizer)
 
-    def update_obs_normalizer(self, obs: PyTorchObs, ok: np.ndarray | th.Tensor, all_reduce: AllReduce | None = None) -> None:
+    def update_obs_normalizer(self, obs: PyTorchObs, ok: th.Tensor, all_reduce: AllReduce | None = None) -> None:
         """
         Merge a batch of collected observations into the running statistics (no-op without normalisation).
 
@@ -446,8 +446,7 @@ class CGACPolicy(BasePolicy):
         """
         if self.obs_normalizer is None:
             return
-        device = next(iter(obs.values())).device if isinstance(obs, dict) else obs.device
-        self.obs_normalizer.update(obs, th.as_tensor(ok, device=device), all_reduce)  # type: ignore[arg-type]
+        self.obs_normalizer.update(obs, ok, all_reduce)  # type: ignore[arg-type]
 
     def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
         features_extractor = features_extractor or self.make_features_extractor(self.actor_keys)

@@ -14,7 +14,7 @@ from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_cgac.buffers import CGACRolloutBuffer
-from sb3_cgac.collection import EnvStep, observations_to_tensor, tensor_env_step, tensor_observations, vec_env_step
+from sb3_cgac.collection import EnvStep, tensor_env_step, tensor_observations, vec_env_observations, vec_env_step
 from sb3_cgac.distributed import DataParallel
 from sb3_cgac.hyperparameters import FEW_ENVS
 from sb3_cgac.policies import CGACPolicy
@@ -23,15 +23,15 @@ from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 SelfWindowAlgorithm = TypeVar("SelfWindowAlgorithm", bound="WindowOnPolicyAlgorithm")
 
 
-def warn_synchronised_resets(terminal: Any, n_envs: int) -> bool:
+def warn_synchronised_resets(infos: list[dict[str, Any]], n_envs: int) -> bool:
     """
     Warn when all envs reached their time limit at the same step (CGAC's rollout collection warns once per model).
 
-    :param terminal: The step's ``(env indices, observations)`` of truncated episodes, or None
+    :param infos: The infos of a step at which every env's episode ended
     :param n_envs: Number of envs; fewer than ``FEW_ENVS`` are expected to reset together
     :return: Whether it warned
     """
-    if terminal is None or not len(terminal[0]) == n_envs >= FEW_ENVS:
+    if n_envs < FEW_ENVS or not all(info.get("TimeLimit.truncated", False) for info in infos):
         return False
     warnings.warn(
         "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
@@ -67,7 +67,7 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
         if tensor_env is not None:
             obs, ok = tensor_observations(tensor_env.last_observations, self.device)
         else:
-            obs, ok = observations_to_tensor(self._last_obs, self.device)  # type: ignore[assignment]
+            obs, ok = vec_env_observations(self._last_obs, self.device)  # type: ignore[arg-type]
         buffer.reset()
         buffer.set_current_obs(obs, ok)
         self.policy.update_obs_normalizer(obs, ok, self._parallel.sum if self._parallel else None)
@@ -75,20 +75,24 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
             self._pending_actions = self.policy.actor_avg.sample(obs, 1)[0]
         self._rollout_obs = self._last_obs
 
-    def _step_env(self, env: VecEnv, actions: th.Tensor) -> tuple[Any, EnvStep]:
-        """One step of every env; returns what ``_last_obs`` becomes and the step as the window stores it."""
+    def _step_env(self, env: VecEnv, actions: th.Tensor) -> tuple[Any, EnvStep, tuple[Any, Any, Any]]:
+        """
+        One step of every env; returns what ``_last_obs`` becomes, the step as the window stores it (tensors on the
+        policy's device) and the rewards, dones and infos as the env gave them (the callbacks' locals, as in SB3).
+        """
         if isinstance(env, TorchVecEnv):  # tensors on the device throughout, no host sync
             tensor_step = env.step_tensors(self.policy.unscale_action_tensor(actions))
-            return tensor_step.observations, tensor_env_step(tensor_step, self.device)
+            step = tensor_env_step(tensor_step, self.device)
+            return tensor_step.observations, step, (step.rewards, step.dones, step.infos)
         new_obs, rewards, dones, infos = env.step(self.policy.unscale_action(actions.cpu().numpy()))
-        step = vec_env_step(new_obs, rewards, dones, infos, self.device)
-        if not self._warned_synchronised_resets:  # once per model
-            self._warned_synchronised_resets = warn_synchronised_resets(step.terminal, env.num_envs)
+        step = vec_env_step(new_obs, rewards, dones, infos, self.device)  # the only conversion from NumPy
+        if not self._warned_synchronised_resets and dones.all():  # once per model
+            self._warned_synchronised_resets = warn_synchronised_resets(infos, env.num_envs)
         if dones.any():  # episode statistics only come with finished episodes
             done_idx = np.flatnonzero(dones)
             self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
         self._last_episode_starts = dones
-        return new_obs, step
+        return new_obs, step, (rewards, dones, infos)
 
     def collect_rollouts(  # type: ignore[override]
         self,
@@ -113,8 +117,7 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
 
         for _ in range(n_rollout_steps):
             actions = self._pending_actions
-            new_obs, step = self._step_env(env, actions)
-            rewards, dones, infos = step.rewards, step.dones, step.infos  # SB3's names, for the callbacks' locals
+            new_obs, step, (rewards, dones, infos) = self._step_env(env, actions)  # SB3's names, for the callbacks' locals
             self.num_timesteps += env.num_envs
             self.policy.update_obs_normalizer(step.observations, step.obs_ok, self._parallel.sum if self._parallel else None)
             with th.inference_mode():
@@ -123,9 +126,7 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
                 next_step_actions = self.policy.actor_avg.sample(step.observations, 1)[0]
                 next_actions = self.policy.actor_avg.sample(step.bootstrap_observations(), 1)[0]
 
-            rollout_buffer.add(
-                actions, rewards, step.terminated, step.truncated, step.observations, step.obs_ok, next_actions, step.terminal
-            )
+            rollout_buffer.add(actions, step, next_actions)
             self._last_obs = self._rollout_obs = new_obs
             self._pending_actions = next_step_actions
 

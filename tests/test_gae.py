@@ -8,7 +8,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_cgac import CGAC
 from sb3_cgac.buffers import CGACRolloutBuffer, _linear_recurrence
-from sb3_cgac.collection import TerminalObservations, split_episode_ends
+from sb3_cgac.collection import EnvStep, split_episode_ends, vec_env_step
 
 GAMMA, LAMBDA = 0.9, 0.8
 OBS_SPACE = spaces.Box(-np.inf, np.inf, (1,), np.float32)
@@ -44,24 +44,31 @@ def literal_q_gae(rewards, next_values, terminated, truncated, valid, horizon=No
     return np.array(targets)
 
 
+def env_step(rewards, terminated, truncated, next_obs, obs_ok=None, final_obs=None):
+    """An EnvStep of tensors (as ``sb3_cgac.collection`` gives the window), from lists or arrays."""
+    n_envs = len(rewards)
+    ok = th.ones(n_envs, dtype=th.bool) if obs_ok is None else th.as_tensor(np.asarray(obs_ok))
+    final_ok = None if final_obs is None else th.ones(n_envs, dtype=th.bool)
+    return EnvStep(
+        th.as_tensor(np.asarray(next_obs, dtype=np.float32)),
+        ok,
+        th.as_tensor(np.asarray(rewards, dtype=np.float32)),
+        th.as_tensor(np.asarray(terminated, dtype=bool)),
+        th.as_tensor(np.asarray(truncated, dtype=bool)),
+        None if final_obs is None else th.as_tensor(np.asarray(final_obs, dtype=np.float32)),
+        final_ok,
+        [{}] * n_envs,
+    )
+
+
 def fill_buffer(buffer, steps, terminal_value=None):
     """Add steps of a single env: (obs, action, reward, terminated, truncated, next_action)."""
-    buffer.set_current_obs(th.tensor([[steps[0][0]]], dtype=th.float32), np.array([True]))
+    buffer.set_current_obs(th.tensor([[steps[0][0]]], dtype=th.float32), th.tensor([True]))
     for i, (_, action, reward, terminated, truncated, next_action) in enumerate(steps):
         next_obs = steps[i + 1][0] if i + 1 < len(steps) else 100.0
-        terminal = None
-        if truncated:
-            terminal = TerminalObservations(th.tensor([0]), th.tensor([[terminal_value]], dtype=th.float32), th.tensor([True]))
-        buffer.add(
-            th.tensor([[action]]),
-            np.array([reward]),
-            np.array([terminated]),
-            np.array([truncated]),
-            th.tensor([[next_obs]], dtype=th.float32),
-            np.array([True]),
-            th.tensor([[next_action]]),
-            terminal,
-        )
+        final = [[terminal_value]] if truncated else None
+        step = env_step([reward], [terminated], [truncated], [[next_obs]], final_obs=final)
+        buffer.add(th.tensor([[action]]), step, th.tensor([[next_action]]))
 
 
 # (obs, action, reward, terminated, truncated, next_action); the next observation is the following row's obs
@@ -125,18 +132,10 @@ def test_ring_wraps_and_computes_only_new_values():
 
     fill_buffer(buffer, steps[:3])
     buffer.compute_returns(counting_q)
-    buffer.set_current_obs(th.tensor([[3.0]]), np.array([True]))
+    buffer.set_current_obs(th.tensor([[3.0]]), th.tensor([True]))
     for i in range(3, 7):
         next_obs = steps[i + 1][0] if i + 1 < 7 else 100.0
-        buffer.add(
-            th.zeros(1, 1),
-            np.array([steps[i][2]]),
-            np.array([False]),
-            np.array([False]),
-            th.tensor([[next_obs]]),
-            np.array([True]),
-            th.zeros(1, 1),
-        )
+        buffer.add(th.zeros(1, 1), env_step([steps[i][2]], [False], [False], [[next_obs]]), th.zeros(1, 1))
     buffer.compute_returns(counting_q)
     assert calls == [3, 4]  # Qbar is evaluated once per step
     assert buffer.size == window and buffer.pos == 7 % window
@@ -171,21 +170,13 @@ def test_targets_of_a_window_of_many_envs():
     terminated, truncated = rng.random((window, n_envs)) < 0.1, rng.random((window, n_envs)) < 0.05
     truncated &= ~terminated
     assert terminated.sum() >= 5 and truncated.sum() >= 5, "the check needs episode ends of both kinds"
-    buffer.set_current_obs(th.from_numpy(obs[0]), np.ones(n_envs, dtype=bool))
+    buffer.set_current_obs(th.from_numpy(obs[0]), th.ones(n_envs, dtype=th.bool))
     for t in range(window):
-        envs = np.flatnonzero(truncated[t])
-        # The time-limited envs bootstrap from a terminal observation of 7.0
-        terminal = TerminalObservations(th.from_numpy(envs), th.full((len(envs), 1), 7.0), th.ones(len(envs), dtype=th.bool))
-        buffer.add(
-            th.zeros(n_envs, 1),
-            rewards[t],
-            terminated[t],
-            truncated[t],
-            th.from_numpy(obs[t + 1]),
-            np.ones(n_envs, dtype=bool),
-            th.from_numpy(next_actions[t]),
-            terminal if len(envs) else None,
-        )
+        # The time-limited envs bootstrap from a terminal observation of 7.0 (the other rows of the final
+        # observations are arbitrary: -50, never read)
+        final = np.where(truncated[t][:, None], 7.0, -50.0) if truncated[t].any() else None
+        step = env_step(rewards[t], terminated[t], truncated[t], obs[t + 1], final_obs=final)
+        buffer.add(th.zeros(n_envs, 1), step, th.from_numpy(next_actions[t]))
     buffer.compute_returns(fake_target_q)
     next_obs = np.where(truncated[..., None], 7.0, obs[1:])
     next_values = (next_obs + next_actions)[..., 0]
@@ -196,19 +187,11 @@ def test_targets_of_a_window_of_many_envs():
 
 def test_nonfinite_transitions_are_excluded():
     buffer = CGACRolloutBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", gamma=GAMMA, gae_lambda=LAMBDA)
-    buffer.set_current_obs(th.zeros(1, 1), np.array([True]))
+    buffer.set_current_obs(th.zeros(1, 1), th.tensor([True]))
     obs_ok = [False, True, True, True, True]  # the observation reached by step 0 was NaN (sanitized to 0)
     rewards = [1.0, 1.0, np.nan, 1.0, 1.0]
     for i in range(5):
-        buffer.add(
-            th.zeros(1, 1),
-            np.array([rewards[i]]),
-            np.array([False]),
-            np.array([False]),
-            th.zeros(1, 1),
-            np.array([obs_ok[i]]),
-            th.zeros(1, 1),
-        )
+        buffer.add(th.zeros(1, 1), env_step([rewards[i]], [False], [False], [[0.0]], obs_ok=[obs_ok[i]]), th.zeros(1, 1))
     buffer.compute_returns(fake_target_q)
     # step 0: bad next obs; step 1: bad obs; step 2: bad reward; steps 3-4 fine
     assert buffer.weights[:5, 0].tolist() == [0.0, 0.0, 0.0, 1.0, 1.0]
@@ -245,17 +228,33 @@ def test_split_episode_ends():
     # Env 0 runs on, env 1 terminates, env 2 is cut by its time limit (SB3's info keys)
     dones = np.array([False, True, True])
     infos = [{}, {"terminal_observation": np.ones(2)}, {"TimeLimit.truncated": True, "terminal_observation": np.full(2, 3.0)}]
-    terminated, truncated, terminal = split_episode_ends(dones, infos, th.device("cpu"))
+    terminated, truncated = split_episode_ends(dones, infos)
     assert terminated.tolist() == [False, True, False]
     assert truncated.tolist() == [False, False, True]
-    assert terminal is not None and terminal.env_indices.tolist() == [2]
-    assert th.equal(terminal.observations, th.full((1, 2), 3.0)) and terminal.ok.all()
     # No episode end: nothing to sort out
-    terminated, truncated, terminal = split_episode_ends(np.zeros(3, dtype=bool), [{}] * 3, th.device("cpu"))
-    assert not terminated.any() and not truncated.any() and terminal is None
+    terminated, truncated = split_episode_ends(np.zeros(3, dtype=bool), [{}] * 3)
+    assert not terminated.any() and not truncated.any()
+
+
+def test_vec_env_step_is_tensors():
+    # An SB3 VecEnv's step as the window takes it: tensors, the truncated env's real last observation in its row
+    obs = np.array([[0.0, 0.0], [1.0, 1.0], [np.nan, 2.0]])
+    dones = np.array([False, True, True])
+    infos = [{}, {"terminal_observation": np.ones(2)}, {"TimeLimit.truncated": True, "terminal_observation": np.full(2, 3.0)}]
+    step = vec_env_step(obs, np.array([1.0, 2.0, 3.0]), dones, infos, th.device("cpu"))
+    assert step.rewards.dtype == th.float32 and step.observations.dtype == th.float32
+    assert step.terminated.tolist() == [False, True, False] and step.truncated.tolist() == [False, False, True]
+    assert step.dones.tolist() == dones.tolist()
+    assert step.obs_ok.tolist() == [True, True, False]
+    assert step.final_observations is not None and step.final_ok is not None
+    assert th.equal(step.final_observations[2], th.full((2,), 3.0)) and step.final_ok[2]
+    assert th.equal(step.bootstrap_observations(), th.tensor([[0.0, 0.0], [1.0, 1.0], [3.0, 3.0]]))
+    # No truncation: no final observations to carry
+    step = vec_env_step(obs[:2], np.zeros(2), np.array([False, True]), infos[:2], th.device("cpu"))
+    assert step.final_observations is None and step.bootstrap_observations() is step.observations
     # A truncation without the real last observation cannot be bootstrapped: a clear error
     with pytest.raises(ValueError, match="terminal_observation"):
-        split_episode_ends(np.array([True]), [{"TimeLimit.truncated": True}], th.device("cpu"))
+        vec_env_step(obs[:1], np.zeros(1), np.array([True]), [{"TimeLimit.truncated": True}], th.device("cpu"))
 
 
 def test_infinite_horizon_env_is_valid():

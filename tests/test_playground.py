@@ -10,7 +10,7 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_cgac import CGAC
-from sb3_cgac.collection import split_episode_ends
+from sb3_cgac.collection import vec_env_step
 from sb3_cgac.vec_env import EnvPoolVecEnv, episode_metrics
 
 envpool = pytest.importorskip("envpool")
@@ -67,7 +67,8 @@ def test_episode_contract_and_statistics(task):
         actions = rng.uniform(-1, 1, (n_envs, *vec_env.action_space.shape)).astype(np.float32)
         obs, rewards, dones, infos = vec_env.step(actions)
         raw_obs, raw_rewards, raw_terminated, raw_truncated, raw_infos = raw.step(actions)
-        terminated, truncated, terminal = split_episode_ends(dones, infos, th.device("cpu"))
+        step = vec_env_step(obs, rewards, dones, infos, th.device("cpu"))
+        terminated, truncated = step.terminated.numpy(), step.truncated.numpy()
         returns += raw_rewards
         for key in components:
             sums[key] += raw_infos[key]
@@ -83,15 +84,10 @@ def test_episode_contract_and_statistics(task):
             time_limit = bool(raw_truncated[idx] and not raw_terminated[idx])
             assert info["TimeLimit.truncated"] == time_limit == truncated[idx] != terminated[idx]
             if time_limit:  # CGAC's value target bootstraps from this observation
-                assert terminal is not None
-                row = int(np.flatnonzero(terminal.env_indices.numpy() == idx)[0])
-                expected = rows(raw_obs, idx)
-                got = (
-                    {key: value[row].numpy() for key, value in terminal.observations.items()}
-                    if isinstance(expected, dict)
-                    else terminal.observations[row].numpy()
-                )
-                assert_obs_equal(got, expected)
+                assert step.final_observations is not None
+                got = rows(step.final_observations, idx)
+                got = {key: value.numpy() for key, value in got.items()} if isinstance(got, dict) else got.numpy()
+                assert_obs_equal(got, rows(raw_obs, idx))
             episode = info["episode"]
             assert episode["l"] == raw_infos["elapsed_step"][idx]
             assert episode["r"] == pytest.approx(returns[idx], rel=1e-4, abs=1e-4)

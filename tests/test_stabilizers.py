@@ -37,7 +37,7 @@ def test_normalizer_ignores_non_finite_rows():
     normalizer = policy.obs_normalizer
     assert normalizer is not None
     # The zeroed row of a non-finite observation does not enter the statistics
-    policy.update_obs_normalizer(th.tensor([[2.0], [0.0], [4.0]]), np.array([True, False, True]))
+    policy.update_obs_normalizer(th.tensor([[2.0], [0.0], [4.0]]), th.tensor([True, False, True]))
     assert normalizer.mean.item() == pytest.approx(3.0, abs=1e-3)
 
 

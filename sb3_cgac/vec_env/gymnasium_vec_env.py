@@ -10,7 +10,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_cgac.obs_rows import rows, set_rows
+from sb3_cgac.obs_rows import per_env_numbers, rows, set_rows
 
 BatchObs = np.ndarray | dict[str, np.ndarray]
 
@@ -28,14 +28,9 @@ def auto_episode_info(infos: Mapping[str, Any], num_envs: int) -> dict[str, str]
     chosen = {}
     for key, value in infos.items():
         how = "sum" if key.startswith("reward_") else AUTO_EPISODE_INFO.get(key)
-        if how is not None and _per_env_scalars(value, num_envs):
+        if how is not None and per_env_numbers(value, num_envs):
             chosen[key] = how
     return chosen
-
-
-def _per_env_scalars(value: Any, num_envs: int) -> bool:
-    array = np.asarray(value)
-    return array.shape == (num_envs,) and np.issubdtype(array.dtype, np.number)
 
 
 def _batch_len(obs: BatchObs) -> int:
@@ -193,7 +188,7 @@ class GymnasiumVecEnv(VecEnv):
         for key, how in self.episode_info.items():
             if key not in infos:
                 continue  # not reported at this step
-            if not _per_env_scalars(infos[key], self.num_envs):
+            if not per_env_numbers(infos[key], self.num_envs):
                 raise ValueError(
                     f"episode_info: the info {key!r} holds {np.asarray(infos[key]).shape} values, not one number per env "
                     f"({self.num_envs},); leave it out of episode_info."

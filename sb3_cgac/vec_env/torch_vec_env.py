@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_cgac.obs_rows import TensorObs, where_rows
+from sb3_cgac.obs_rows import TensorObs, per_env_numbers, where_rows
 
 
 class TensorStep(NamedTuple):
@@ -44,13 +44,7 @@ class TensorStep(NamedTuple):
 
 def reward_components(info: dict[str, Any], num_envs: int) -> list[str]:
     """The info entries that a torch-native env's episode statistics sum: ``reward_*``, one number per env."""
-    return [key for key, value in info.items() if key.startswith("reward_") and _per_env_numbers(value, num_envs)]
-
-
-def _per_env_numbers(value: Any, num_envs: int) -> bool:
-    if isinstance(value, th.Tensor):
-        return tuple(value.shape) == (num_envs,)
-    return isinstance(value, np.ndarray) and value.shape == (num_envs,) and np.issubdtype(value.dtype, np.number)
+    return [key for key, value in info.items() if key.startswith("reward_") and per_env_numbers(value, num_envs)]
 
 
 def _to_numpy(obs: TensorObs) -> np.ndarray | dict[str, np.ndarray]:
