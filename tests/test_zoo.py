@@ -256,19 +256,19 @@ def test_compare_script_tiny_budget(tmp_path):
 
 
 def fake_launches(monkeypatch, scripts):
-    """compare.launch replaced by shell scripts, one per (run, seed), which may write the pair's "done" file."""
-    from sb3_cgac import compare
+    """compare's launch replaced by shell scripts, one per (run, seed), which may write the pair's "done" file."""
+    from sb3_cgac.compare import pairs, runs
 
     launched = []
 
     def launch(args, run, seed, spec):
-        _, done_path, log_path = compare.run_paths(pathlib.Path(args.out), run, seed)
+        _, done_path, log_path = runs.run_paths(pathlib.Path(args.out), run, seed)
         command = ["bash", "-c", scripts[run].format(done=done_path)]
         with log_path.open("w") as log:
             launched.append(subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT))
         return launched[-1]
 
-    monkeypatch.setattr(compare, "launch", launch)
+    monkeypatch.setattr(pairs, "launch", launch)
     return launched
 
 
@@ -285,11 +285,11 @@ def test_compare_a_failed_pair_lets_the_running_ones_finish(tmp_path, monkeypatc
 
 
 def test_compare_stopped_stops_its_pairs(tmp_path, monkeypatch):
-    from sb3_cgac import compare
+    from sb3_cgac.compare import pairs
 
     launched = fake_launches(monkeypatch, {"long": "sleep 60"})
 
-    sleep, calls = compare.time.sleep, []
+    sleep, calls = pairs.time.sleep, []
 
     def interrupted(seconds):  # Ctrl-C in compare's first wait (subprocess's own waits sleep as usual)
         calls.append(seconds)
@@ -297,10 +297,10 @@ def test_compare_stopped_stops_its_pairs(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         sleep(seconds)
 
-    monkeypatch.setattr(compare.time, "sleep", interrupted)
+    monkeypatch.setattr(pairs.time, "sleep", interrupted)
     args = argparse.Namespace(out=str(tmp_path), first_seed=0, seeds=1, minutes=0, steps=100, jobs=1)
     with pytest.raises(KeyboardInterrupt):
-        compare.run_comparison(args, {"long": {}}, references=())
+        pairs.run_comparison(args, {"long": {}}, references=())
     assert len(launched) == 1 and launched[0].returncode == -signal.SIGTERM
 
 
