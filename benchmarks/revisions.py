@@ -1,14 +1,16 @@
 """
-End-to-end training throughput of this checkout against another git revision, side by side in one run.
+Training throughput of this checkout (or a second revision) against a git revision, side by side in one run.
 
-    python benchmarks/revisions.py HEAD~1                     # the HalfCheetah-v5 entry and the quickstart, 8 rounds
+    python benchmarks/revisions.py HEAD~1                # this checkout against HEAD~1: every case, 8 rounds
+    python benchmarks/revisions.py 85f7146 973f1ca      # one commit against its parent
     python benchmarks/revisions.py v0.2.0 --cases quickstart --rounds 4 --output revisions.md
 
 Each revision trains in its own process (the revision's ``sb3_cgac`` first on ``PYTHONPATH``, extracted with ``git
 archive``; the YAML entries of this checkout's ``hyperparams/``), and the processes take turns: one chunk of training
 of one, then the same chunk of the other, so that the machine's speed drift hits both alike and only one trains at a
-time. A round's ratio is this checkout's steps/s over the revision's in that round; the table gives the steps/s over all
-rounds and the median and range of the rounds' ratios. Run it on a quiet machine; timings are printed, never asserted.
+time. A round's ratio is the new side's steps/s (this checkout, or the second revision) over the old side's in that
+round; the table gives the mean steps/s over the rounds and the median and range of the rounds' ratios. Run it on a
+quiet machine; timings are printed, never asserted.
 
 Cases (CPU, the library's default threads):
 - ``halfcheetah``: the HalfCheetah-v5 entry of hyperparams/cgac.yml (128 envs, DummyVecEnv), built as the zoo builds it;
@@ -124,32 +126,35 @@ def compare(case: str, sources: dict[str, Path], chunk: int, rounds: int) -> tup
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("revision", help="the git revision to compare this checkout with (e.g. HEAD~1)")
+    parser.add_argument("revision", help="the git revision to compare with (e.g. HEAD~1)")
+    parser.add_argument("new", nargs="?", help="a second revision, the new side (default: this checkout as it is)")
     parser.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
     parser.add_argument("--rounds", type=int, default=8)
     parser.add_argument("--chunk", type=int, default=128, help="steps of every env per chunk")
     parser.add_argument("--output", help="also write the table to this file")
     args = parser.parse_args()
 
-    with tempfile.TemporaryDirectory() as folder:
-        commit = extract(args.revision, Path(folder))
-        sources = {"this checkout": ROOT, commit: Path(folder)}
+    with tempfile.TemporaryDirectory() as old_folder, tempfile.TemporaryDirectory() as new_folder:
+        commit = extract(args.revision, Path(old_folder))
+        new = extract(args.new, Path(new_folder)) if args.new else "this checkout"
+        sources = {new: Path(new_folder) if args.new else ROOT, commit: Path(old_folder)}
         lines = [
-            f"| case | this checkout (steps/s) | {commit} (steps/s) | ratio, median of rounds | ratio, range |",
+            f"| case | {new} (steps/s) | {commit} (steps/s) | ratio, median of rounds | ratio, range |",
             "| --- | --- | --- | --- | --- |",
         ]
         threads = 0
         for case in args.cases:
             rates, threads = compare(case, sources, args.chunk, args.rounds)
-            ratios = [new / old for new, old in zip(rates["this checkout"], rates[commit], strict=True)]
+            ratios = [ours / theirs for ours, theirs in zip(rates[new], rates[commit], strict=True)]
             lines.append(
-                f"| {CASES[case]} | {statistics.mean(rates['this checkout']):.0f} | {statistics.mean(rates[commit]):.0f} "
+                f"| {CASES[case]} | {statistics.mean(rates[new]):.0f} | {statistics.mean(rates[commit]):.0f} "
                 f"| {statistics.median(ratios):.3f} | {min(ratios):.3f}-{max(ratios):.3f} |"
             )
             print(lines[-1], flush=True)
+    command = " ".join(["python benchmarks/revisions.py", args.revision, *([args.new] if args.new else [])])
     header = (
-        f"{machine(threads)}; `python benchmarks/revisions.py {args.revision}` ({commit}), {args.rounds} rounds of "
-        f"{args.chunk} steps per env, {time.strftime('%Y-%m-%d')}"
+        f"{machine(threads)}; `{command}`: {new} against {commit}, {args.rounds} rounds of {args.chunk} steps per env, "
+        f"{time.strftime('%Y-%m-%d')}"
     )
     table = "\n".join([header, "", *lines])
     print(table)
