@@ -6,6 +6,7 @@ README's figure::
         --runs cgac=cgac_antrecipe_floor4e4_predict ppo sac --seeds cgac=6,7,8,9 --out docs/figures/Humanoid-v5.png
 
 ``--runs name=run`` renames a run (the entry's folder name) for the legend; ``--seeds name=a,b`` keeps those seeds of it.
+A run is drawn from the first folder (in the order given) that holds it.
 """
 
 import argparse
@@ -25,10 +26,12 @@ def main() -> None:
     parser.add_argument("--out", required=True, help="the PNG to write")
     args = parser.parse_args()
     renames = dict(item.split("=", 1) if "=" in item else (item, item) for item in args.runs)
-    frames = []
+    frames, taken = [], set()
     for folder in args.folders:
         frame = pd.read_csv(Path(folder) / "evaluations.csv")
-        frames.append(frame[frame["run"].isin(renames.values())])
+        wanted = set(renames.values()) - taken
+        frames.append(frame[frame["run"].isin(wanted)])
+        taken |= wanted & set(frame["run"])
     results = pd.concat(frames, ignore_index=True)
     results["run"] = results["run"].map({run: name for name, run in renames.items()})
     for item in args.seeds:
