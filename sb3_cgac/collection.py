@@ -95,7 +95,7 @@ def sanitize_observations(obs: ArrayObs) -> tuple[ArrayObs, np.ndarray]:
     so that no network ever sees them; the returned mask lets the window exclude those transitions.
 
     NumPy at the boundary, before the conversion to tensors: a batch of an SB3 VecEnv is checked by one reduction in the
-    common case, which on a CPU costs a fraction of the same check in torch (docs/performance.md, "One tensor pipeline").
+    common case (docs/performance.md, "One tensor pipeline").
 
     :param obs: Batched observations (one row per env), an array or a dict of arrays
     :return: The cleaned observations (float ones in float32, the precision of the networks and the window)
