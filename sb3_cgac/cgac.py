@@ -2,7 +2,6 @@ from typing import Any, ClassVar, TypeVar
 
 import torch as th
 from stable_baselines3.common.logger import configure as configure_logger
-from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
@@ -75,9 +74,6 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
     :param cuda_graphs: Replay the critic and actor updates as CUDA graphs (CUDA only; a warning elsewhere)
-    :param action_noise: Noise added to the actions the envs execute (scaled to [-1, 1], then clipped), apart from the
-        policy's entropy, e.g. ``sb3_cgac.noise.PerEnvNormalActionNoise`` or SB3's ``NormalActionNoise`` (one per env);
-        the window stores the executed actions, the targets' next actions stay the averaged actor's (SB3 VecEnvs only)
     :param rollout_buffer_class: Rollout buffer class to use (None: ``CGACRolloutBuffer``)
     :param rollout_buffer_kwargs: Keyword arguments to pass to the rollout buffer on creation
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -127,7 +123,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         max_grad_norm: float = 20.0,
         update_precision: str = "float32",
         cuda_graphs: bool = False,
-        action_noise: ActionNoise | None = None,
         rollout_buffer_class: type[CGACRolloutBuffer] | None = None,
         rollout_buffer_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -169,7 +164,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.ent_coef_monotone = ent_coef_monotone
         self.update_precision = update_precision
         self.cuda_graphs = cuda_graphs
-        self.action_noise = action_noise
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
         self.rollout_buffer_kwargs = rollout_buffer_kwargs or {}
         self.log_ent_coef: th.Tensor | None = None

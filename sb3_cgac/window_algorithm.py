@@ -10,7 +10,6 @@ from typing import Any, TypeVar
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.noise import ActionNoise, VectorizedActionNoise
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -18,7 +17,6 @@ from sb3_cgac.buffers import CGACRolloutBuffer
 from sb3_cgac.collection import EnvStep, tensor_env_step, tensor_observations, vec_env_observations, vec_env_step
 from sb3_cgac.distributed import DataParallel
 from sb3_cgac.hyperparameters import FEW_ENVS
-from sb3_cgac.noise import PerEnvNormalActionNoise
 from sb3_cgac.policies import CGACPolicy
 from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 
@@ -62,30 +60,6 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
     _warned_synchronised_resets = False
     # Data-parallel training (sb3_cgac.distributed), started by learn() under torchrun
     _parallel: DataParallel | None = None
-    # Exploration noise on the executed actions, apart from the policy's entropy (CGAC's action_noise)
-    action_noise: ActionNoise | None = None
-
-    def _setup_action_noise(self, env: VecEnv) -> None:
-        # As SB3's off-policy algorithms: a noise of one env is copied for each env
-        if self.action_noise is None:
-            return
-        if isinstance(env, TorchVecEnv):
-            raise ValueError(
-                "CGAC: action_noise works with SB3 VecEnvs, not with a torch-native env (TorchVecEnv): leave it out, or "
-                "step the task through an SB3 VecEnv backend (envpool, dummy, subproc)."
-            )
-        if env.num_envs > 1 and not isinstance(self.action_noise, (VectorizedActionNoise, PerEnvNormalActionNoise)):
-            self.action_noise = VectorizedActionNoise(self.action_noise, env.num_envs)
-        n_envs = getattr(self.action_noise, "n_envs", 1)
-        if n_envs != env.num_envs:
-            raise ValueError(f"CGAC: action_noise is made for {n_envs} envs, the env has {env.num_envs}: make it for as many.")
-
-    def _with_action_noise(self, actions: th.Tensor) -> th.Tensor:
-        """The actions to execute: the averaged actor's, plus the exploration noise if any, within [-1, 1]."""
-        if self.action_noise is None:
-            return actions
-        noise = th.as_tensor(self.action_noise(), dtype=actions.dtype, device=actions.device)
-        return (actions + noise).clamp(-1.0, 1.0)
 
     def _start_rollout(self, buffer: CGACRolloutBuffer, tensor_env: TorchVecEnv | None) -> None:
         # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
@@ -117,10 +91,6 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
         if dones.any():  # episode statistics only come with finished episodes
             done_idx = np.flatnonzero(dones)
             self._update_info_buffer([infos[idx] for idx in done_idx], dones[done_idx])
-            if isinstance(self.action_noise, (VectorizedActionNoise, PerEnvNormalActionNoise)):
-                self.action_noise.reset(done_idx)
-            elif self.action_noise is not None:
-                self.action_noise.reset()
         self._last_episode_starts = dones
         return new_obs, step, (rewards, dones, infos)
 
@@ -141,13 +111,12 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
             self.policy.set_training_mode(False)
         tensor_env = env if isinstance(env, TorchVecEnv) else None
         if self._pending_actions is None or self._last_obs is not self._rollout_obs:
-            self._setup_action_noise(env)
             self._start_rollout(rollout_buffer, tensor_env)
         assert self._pending_actions is not None
         callback.on_rollout_start()
 
         for _ in range(n_rollout_steps):
-            actions = self._with_action_noise(self._pending_actions)
+            actions = self._pending_actions
             new_obs, step, (rewards, dones, infos) = self._step_env(env, actions)  # SB3's names, for the callbacks' locals
             self.num_timesteps += env.num_envs
             self.policy.update_obs_normalizer(step.observations, step.obs_ok, self._parallel.sum if self._parallel else None)

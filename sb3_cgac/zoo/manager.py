@@ -12,14 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_cgac import CGAC
 from sb3_cgac.distributed import world
-from sb3_cgac.noise import PerEnvNormalActionNoise
 from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_backend_task, register_optional_envs
 from sb3_cgac.wrappers import RandomFirstEpisodeLength
 
@@ -102,14 +100,12 @@ def swapped_attribute(owner: Any, name: str, value: Any) -> Iterator[None]:
 
 class CGACExperimentManager(ExperimentManager):
     """
-    rl_zoo3's ``ExperimentManager`` with four additions: ``backend`` builds the training and evaluation envs with
+    rl_zoo3's ``ExperimentManager`` with three additions: ``backend`` builds the training and evaluation envs with
     ``sb3_cgac.vec_env.make_vec_env`` (the zoo's normalization, frame stacking and VecEnv wrappers still apply),
     schedules also take the form ``lin_<start>_<end>_<end_fraction>`` (SB3's ``LinearSchedule``: linear from start to
     end over that fraction of ``n_timesteps``, then constant; the authors' learning-rate decay), and the YAML key
     ``random_first_episode: true`` cuts the first episode of every training env at a random length (with any backend;
-    evaluation envs are left alone), and ``noise_type: per_env_normal`` with ``noise_std: [std_min, std_max]`` gives the
-    model a ``sb3_cgac.noise.PerEnvNormalActionNoise`` for its training envs (beside the zoo's ``normal`` and
-    ``ornstein-uhlenbeck``).
+    evaluation envs are left alone).
 
     :param backend: One of ``sb3_cgac.vec_env.BACKENDS``
     :param backend_kwargs: Keyword arguments of the backend (e.g. ``num_threads`` for envpool)
@@ -137,19 +133,6 @@ class CGACExperimentManager(ExperimentManager):
         if world_size > 1:  # under torchrun, n_timesteps counts the env steps of all ranks together
             self.n_timesteps //= world_size
         return result
-
-    def _preprocess_action_noise(
-        self, hyperparams: dict[str, Any], saved_hyperparams: dict[str, Any], env: VecEnv
-    ) -> dict[str, Any]:
-        if hyperparams.get("noise_type") != "per_env_normal":
-            return super()._preprocess_action_noise(hyperparams, saved_hyperparams, env)
-        std_range = hyperparams.pop("noise_std", None)
-        del hyperparams["noise_type"]
-        if not (isinstance(std_range, (list, tuple)) and len(std_range) == 2):
-            raise ValueError(f"noise_type per_env_normal takes noise_std: [std_min, std_max], got {std_range!r}.")
-        action_dim = int(np.prod(env.action_space.shape or (1,)))
-        hyperparams["action_noise"] = PerEnvNormalActionNoise(env.num_envs, action_dim, *map(float, std_range))
-        return hyperparams
 
     @staticmethod
     def _preprocess_schedules(hyperparams: dict[str, Any]) -> dict[str, Any]:
