@@ -9,7 +9,7 @@ that ``model.predict(obs, deterministic=True)`` returns::
 
 From Python: ``export_policy(model, "policy.onnx", vec_normalize=env)``. A Box observation is one input, ``obs``; a
 Dict observation is one input per key the actor reads (the policy's ``actor_keys``, else every key), named by the keys,
-in the order of the observation spa
+in the order of the observation space.
 
 The package: ``actor`` builds the exported module and writes the file (``export_policy``); ``cli`` is the command line.
 """

@@ -1,5 +1,7 @@
-"""The deterministic actor of a CGAC model as a standalone module (normalisation and action scaling inside), written
-as ONNX or TorchScript."""
+"""
+The deterministic actor of a CGAC model as a standalone module (normalisation and action scaling inside), written
+as ONNX or TorchScript.
+"""
 
 import copy
 import importlib.util

@@ -1,5 +1,7 @@
-"""CGAC in rl-baselines3-zoo: the algorithm registered, this package's YAML files, schedules and env backends, and
-``build_model``, which builds a model from an entry as ``python -m sb3_cgac.train`` does."""
+"""
+CGAC in rl-baselines3-zoo: the algorithm registered, this package's YAML files, schedules and env backends, and
+``build_model``, which builds a model from an entry as ``python -m sb3_cgac.train`` does.
+"""
 
 import argparse
 import contextlib
