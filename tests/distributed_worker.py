@@ -78,19 +78,19 @@ def main() -> None:
         parallel = DataParallel(model.device)
         data = model.rollout_buffer.sample(model.batch_size)
         reference = copy.deepcopy(model.critic)  # the same parameters on both ranks, before the update
-        loss, _ = critic_loss(model.critic, *data, data.weights.sum().clamp_min(1.0), None, parallel.gather)
+        loss, _ = critic_loss(model.critic, *data[:4], data.weights.sum().clamp_min(1.0), None, parallel.gather)
         model.critic.zero_grad()
         loss.backward()
         parallel.average_gradients(list(model.critic.parameters()))
         averaged = th.cat([param.grad.reshape(-1) for param in model.critic.parameters()])
         # One process that sees both ranks' minibatches
         gathered = []
-        for tensor in data:  # a Box observation: every field is a tensor
+        for tensor in data[:4]:  # a Box observation: every field is a tensor (no log-probabilities: pg_coef is 0)
             parts = [th.zeros_like(tensor) for _ in range(world_size)]
             dist.all_gather(parts, tensor.contiguous())
             gathered.append(th.cat(parts))
         union = CGACSamples(*gathered)
-        loss, _ = critic_loss(reference, *union, union.weights.sum().clamp_min(1.0), None)
+        loss, _ = critic_loss(reference, *union[:4], union.weights.sum().clamp_min(1.0), None)
         reference.zero_grad()
         loss.backward()
         single = th.cat([param.grad.reshape(-1) for param in reference.parameters()])
