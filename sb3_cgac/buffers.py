@@ -14,8 +14,6 @@ from sb3_cgac.obs_rows import TensorObs, rows, where_rows
 
 # Q-function used for the targets: (observations, actions) -> values of shape (batch,)
 QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]
-# Log-likelihood of actions under the behaviour policy: (observations, actions) -> values of shape (batch,)
-LogProbFunction = Callable[[TensorObs, th.Tensor], th.Tensor]
 
 
 class CGACSamples(NamedTuple):
@@ -25,8 +23,6 @@ class CGACSamples(NamedTuple):
     actions: th.Tensor
     returns: th.Tensor
     weights: th.Tensor
-    # The behaviour policy's log-likelihood of the actions, when ``compute_returns`` was given it (else None)
-    log_probs: th.Tensor | None = None
 
 
 def _storage_dtype(space: spaces.Space) -> th.dtype:
@@ -150,8 +146,6 @@ class CGACRolloutBuffer:
         self.returns = th.zeros(shape, device=self.device)
         # Whether each transition takes part in the losses (the sampled weight), 1 byte each
         self.weights = th.zeros(shape, dtype=th.bool, device=self.device)
-        # The behaviour policy's log-likelihood of each action, kept once compute_returns is given that policy
-        self.log_probs: th.Tensor | None = None
         # Every env's final observation at the steps that hold truncations (only the truncated rows are read), so that
         # adding a step needs no host sync; allocated at the first such step
         self.final_observations: TensorObs | None = None
@@ -243,23 +237,16 @@ class CGACRolloutBuffer:
         return (self.pos - n_steps + th.arange(n_steps, device=self.device)) % self.buffer_window
 
     @th.no_grad()
-    def compute_returns(
-        self, target_q: QFunction, behaviour_log_prob: LogProbFunction | None = None, max_batch: int = 65536
-    ) -> None:
+    def compute_returns(self, target_q: QFunction, max_batch: int = 65536) -> None:
         """
         Evaluate Qbar for the steps added since the last call, then recompute the Q-GAE targets of the window.
 
         :param target_q: Min-of-twin target critic, ``(obs, actions) -> values``
-        :param behaviour_log_prob: The policy that took the new steps' actions, ``(obs, actions) -> log-likelihoods``:
-            given, the window keeps each action's log-likelihood (at its first call, that of every step held) and
-            ``sample`` returns them. Call it before the policy changes, i.e. before the updates that follow a rollout
         :param max_batch: Largest batch given to ``target_q`` at once (bounds the memory of the forward pass)
         """
         n_new = self.n_pending
         if n_new == 0:
             return
-        if behaviour_log_prob is not None:
-            self._store_log_probs(behaviour_log_prob, n_new, max_batch)
         slots = self._chronological_slots(n_new)
         # Next observations of the new steps: each following step's observation, the current one for the newest
         next_obs = rows(self.observations, slots[1:])
@@ -290,21 +277,6 @@ class CGACRolloutBuffer:
         self.weights[slots] = valid
         self.n_pending = 0
         self._compute_q_gae()
-
-    def _store_log_probs(self, behaviour_log_prob: LogProbFunction, n_new: int, max_batch: int) -> None:
-        if self.log_probs is None:
-            self.log_probs = th.zeros((self.buffer_window, self.n_envs), device=self.device)
-            n_new = self.size
-        slots = self._chronological_slots(n_new)
-        flat_obs = _flatten_obs(rows(self.observations, slots), 2)
-        flat_actions = self.actions[slots].reshape(-1, self.action_dim)
-        log_probs = th.cat(
-            [
-                behaviour_log_prob(rows(flat_obs, slice(start, start + max_batch)), flat_actions[start : start + max_batch])
-                for start in range(0, flat_actions.shape[0], max_batch)
-            ]
-        )
-        self.log_probs[slots] = log_probs.reshape(n_new, self.n_envs)
 
     def _compute_q_gae(self) -> None:
         order = self._chronological_slots(self.size)
@@ -338,8 +310,7 @@ class CGACRolloutBuffer:
         Sample transitions uniformly (with replacement) from the window.
 
         :param batch_size: Number of transitions
-        :return: Observations, actions, Q-GAE targets, weights (0 for excluded transitions) and, when kept, the
-            behaviour policy's log-likelihoods of the actions
+        :return: Observations, actions, Q-GAE targets and weights (0 for excluded transitions)
         """
         idx = th.randint(0, self.n_transitions, (batch_size,), device=self.device)
         return CGACSamples(
@@ -347,15 +318,12 @@ class CGACRolloutBuffer:
             actions=self.actions.view(-1, self.action_dim)[idx],
             returns=self.returns.view(-1)[idx],
             weights=self.weights.view(-1)[idx].float(),
-            log_probs=None if self.log_probs is None else self.log_probs.view(-1)[idx],
         )
 
     def nbytes(self) -> int:
         """Memory held by the buffer, final observations included."""
         tensors = [self.actions, self.next_actions, self.rewards, self.terminated, self.truncated]
         tensors += [self.obs_ok, self.reward_ok, self.next_values, self.returns, self.weights, self.current_obs_ok]
-        if self.log_probs is not None:
-            tensors.append(self.log_probs)
         total = _nbytes(self.observations) + _nbytes(self.current_obs) + sum(_nbytes(t) for t in tensors)
         if self.final_observations is not None:
             total += _nbytes(self.final_observations)

@@ -23,7 +23,7 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     warn_few_envs,
 )
-from sb3_cgac.losses import PolicyGradientTerm, actor_loss, critic_loss, update_log_ent_coef
+from sb3_cgac.losses import SelfImitationTerm, actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
 
@@ -71,10 +71,9 @@ class CGAC(WindowOnPolicyAlgorithm):
         the entropy is at or above its target; ``True`` is the paper's ``alpha = min(alpha_prev, alpha_new)``;
         ``False`` leaves it free (SAC)
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
-    :param pg_coef: Weight of a likelihood-ratio term in the actor loss beside the critic gradient: PPO's clipped
-        surrogate (clip range 0.2, dual clip 3) of the window's taken actions, with the Q-GAE targets less the critics'
-        value of the actor's action as advantages and the averaged actor that took them as the behaviour policy
-        (``sb3_cgac.losses.actor_loss``); 0 (the paper's actor loss) leaves it out
+    :param self_imitation_coef: Weight of a self-imitation term in the actor loss beside the critic gradient: the
+        log-likelihood of the window's taken actions, each weighted by how far its Q-GAE target exceeds the critics'
+        value of the actor's own action (``sb3_cgac.losses.actor_loss``); 0 (the paper's actor loss) leaves it out
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
     :param cuda_graphs: Replay the critic and actor updates as CUDA graphs (CUDA only; a warning elsewhere)
@@ -125,7 +124,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
         max_grad_norm: float = 20.0,
-        pg_coef: float = 0.0,
+        self_imitation_coef: float = 0.0,
         update_precision: str = "float32",
         cuda_graphs: bool = False,
         rollout_buffer_class: type[CGACRolloutBuffer] | None = None,
@@ -162,7 +161,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.buffer_window = buffer_window
         self.policy_delay = policy_delay
         self.gae_horizon = gae_horizon
-        self.pg_coef = pg_coef
+        self.self_imitation_coef = self_imitation_coef
         # What the constructor was given; _setup_model resolves it into batch_size, critic_updates_per_step, tau, policy_tau
         self._requested_update_cost = (batch_size, critic_updates_per_step, tau, policy_tau)
         self.predict_tau = predict_tau
@@ -189,7 +188,7 @@ class CGAC(WindowOnPolicyAlgorithm):
             gamma=gamma,
             gae_lambda=gae_lambda,
             max_grad_norm=max_grad_norm,
-            pg_coef=pg_coef,
+            self_imitation_coef=self_imitation_coef,
             ent_coef=ent_coef,
             ent_coef_monotone=ent_coef_monotone,
             update_precision=update_precision,
@@ -305,11 +304,10 @@ class CGAC(WindowOnPolicyAlgorithm):
         ent_coef = self._ent_coef()
         # Only dQ/da is needed for the actor loss: the critics' own gradients are not computed
         self.critic.set_q_requires_grad(False)
-        policy_gradient = None
-        if self.pg_coef > 0:
-            assert data.log_probs is not None  # the window keeps them when pg_coef > 0 (train)
-            policy_gradient = PolicyGradientTerm(self.pg_coef, data.actions, data.returns, data.log_probs)
-        loss, log_prob, pg_statistics = actor_loss(
+        self_imitation = None
+        if self.self_imitation_coef > 0:
+            self_imitation = SelfImitationTerm(self.self_imitation_coef, data.actions, data.returns)
+        loss, log_prob, imitation_statistics = actor_loss(
             self.actor,
             self.critic,
             data.observations,
@@ -318,7 +316,7 @@ class CGAC(WindowOnPolicyAlgorithm):
             ent_coef,
             self._autocast_dtype,
             self.policy.actor_q_reduction,
-            policy_gradient,
+            self_imitation,
         )
         self.actor.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -328,7 +326,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         grad_norm = total_grad_norm(self._actor_parameters)
         self.actor.optimizer.step()
 
-        statistics = {"actor_loss": loss.detach(), "actor_grad_norm": grad_norm, **pg_statistics}
+        statistics = {"actor_loss": loss.detach(), "actor_grad_norm": grad_norm, **imitation_statistics}
         statistics["entropy"] = -(log_prob * data.weights).sum() / weight_sum
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
@@ -341,10 +339,8 @@ class CGAC(WindowOnPolicyAlgorithm):
 
     def train(self) -> None:
         """Value targets of the new steps, then critic, actor, entropy-coefficient and Polyak updates on minibatches."""
-        # Qbar of the new steps by the target critic, and the window's Q-GAE(lambda) targets (paper Eq. 9-11); for
-        # the likelihood-ratio term, the averaged actor's log-likelihood of the actions it took (not updated since)
-        behaviour_log_prob = self.policy.behaviour_log_prob if self.pg_coef > 0 else None
-        self.rollout_buffer.compute_returns(self.policy.target_q_value, behaviour_log_prob)
+        # Qbar of the new steps by the target critic, and the window's Q-GAE(lambda) targets (paper Eq. 9-11)
+        self.rollout_buffer.compute_returns(self.policy.target_q_value)
         if self.rollout_buffer.n_transitions < self.batch_size:
             return  # the window does not hold a minibatch yet
         self.policy.set_training_mode(True)

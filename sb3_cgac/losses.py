@@ -70,37 +70,12 @@ def critic_loss(
     return loss / weight_sum, q_values[0].detach().mean()
 
 
-# The likelihood-ratio term's clip range (PPO's default) and dual clip (Ye et al. 2020, "Mastering Complex Control in
-# MOBA Games with Deep Reinforcement Learning"): the window's older transitions come from earlier behaviour policies,
-# whose ratios may be far from 1, and a negative advantage times an unbounded ratio would dominate the update
-PG_CLIP_RANGE = 0.2
-PG_DUAL_CLIP = 3.0
-# exp() of a larger log-ratio overflows float32; clamping it zeroes the gradient of ratios that no clip lets through
-MAX_LOG_RATIO = 20.0
-
-
-class PolicyGradientTerm(NamedTuple):
-    """The inputs of the likelihood-ratio term of ``actor_loss``: a minibatch's taken actions and what they earned."""
+class SelfImitationTerm(NamedTuple):
+    """The inputs of the self-imitation term of ``actor_loss``: a minibatch's taken actions and what they earned."""
 
     coef: float
     actions: th.Tensor
     returns: th.Tensor
-    behaviour_log_probs: th.Tensor
-
-
-def clipped_surrogate(log_ratio: th.Tensor, advantages: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-    """
-    PPO's clipped surrogate objective with a dual clip, per sample (to be maximised).
-
-    :param log_ratio: ``log pi(a|s) - log mu(a|s)`` of the trained policy pi and the behaviour policy mu
-    :param advantages: Advantages of the taken actions (detached)
-    :return: The objective per sample, and whether each sample's ratio was clipped (detached, float)
-    """
-    ratio = th.exp(log_ratio.clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO))
-    clipped_ratio = ratio.clamp(1.0 - PG_CLIP_RANGE, 1.0 + PG_CLIP_RANGE)
-    surrogate = th.min(ratio * advantages, clipped_ratio * advantages)
-    surrogate = th.where(advantages < 0, th.max(surrogate, PG_DUAL_CLIP * advantages), surrogate)
-    return surrogate, (ratio != clipped_ratio).float().detach()
 
 
 def actor_loss(
@@ -112,18 +87,19 @@ def actor_loss(
     ent_coef: th.Tensor,
     autocast_dtype: th.dtype | None = None,
     q_reduction: str = "min",
-    policy_gradient: PolicyGradientTerm | None = None,
+    self_imitation: SelfImitationTerm | None = None,
 ) -> tuple[th.Tensor, th.Tensor, dict[str, th.Tensor]]:
     """
     The actor loss of paper Eq. 7, ``E[alpha * log pi(a|s) - Q(s, a)]`` with reparameterised actions, where Q is the
     minimum of the critics (Eq. 11) or their mean. The critics' parameters should not require gradients: only dQ/da
     is needed.
 
-    With ``policy_gradient``, the loss also subtracts ``coef`` times PPO's clipped surrogate of the taken actions
-    (``clipped_surrogate``), with the advantages ``A = Y - min_i Q_i(s, a_pi)``: the Q-GAE target of the taken action
-    (Eq. 9-10) less the critics' value of the trained policy's reparameterised action, the same minimum as the targets
-    take. Both terms estimate the gradient of the expected return in the same units (for the Gaussian,
-    ``E[A d log pi / d mu] = E[dQ/da]``), the second from the returns the actions earned rather than the critics' slope.
+    With ``self_imitation``, the loss also subtracts ``coef * max(A, 0) * log pi(a_taken|s)``, self-imitation learning's
+    policy term (Oh et al. 2018): the actor imitates the window's taken actions that did better than it does now, by
+    their advantage ``A = Y - min_i Q_i(s, a_pi)``, the Q-GAE target of the taken action (Eq. 9-10) less the critics'
+    value of the actor's reparameterised action (the same minimum as the targets take). It follows the returns the
+    actions earned, not the critics' slope, and needs no likelihood ratio: the window's actions come from earlier
+    averaged actors, whose ratios to the trained actor are far from 1.
 
     :param actor: The trained actor
     :param critic: The trained critics
@@ -133,26 +109,25 @@ def actor_loss(
     :param ent_coef: The entropy coefficient alpha (detached)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
     :param q_reduction: How the actor reads the critics: ``"min"`` (paper Eq. 11) or ``"mean"``
-    :param policy_gradient: The likelihood-ratio term's coefficient and inputs; None: no such term
-    :return: The loss, the log-probabilities of the sampled actions (detached), and the likelihood-ratio term's
+    :param self_imitation: The self-imitation term's coefficient and inputs; None: no such term
+    :return: The loss, the log-probabilities of the sampled actions (detached), and the self-imitation term's
         statistics by name (empty without it)
     """
     with th.autocast(weights.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
-        if policy_gradient is None:
+        if self_imitation is None:
             actions_pi, log_prob = actor.action_log_prob(observations)
         else:
-            actions_pi, log_prob, taken_log_prob = actor.action_log_probs(observations, policy_gradient.actions)
+            actions_pi, log_prob, taken_log_prob = actor.action_log_probs(observations, self_imitation.actions)
         q_values = critic.q_values(observations, actions_pi).float()
     q_value = q_values.min(dim=0).values if q_reduction == "min" else q_values.mean(dim=0)
     log_prob = log_prob.float()
     per_sample = ent_coef * log_prob - q_value
     statistics: dict[str, th.Tensor] = {}
-    if policy_gradient is not None:
-        advantages = policy_gradient.returns - q_values.detach().min(dim=0).values
-        surrogate, clipped = clipped_surrogate(taken_log_prob - policy_gradient.behaviour_log_probs, advantages)
-        per_sample = per_sample - policy_gradient.coef * surrogate
-        statistics["pg_clip_fraction"] = (clipped * weights).sum() / weight_sum
-        statistics["pg_advantage_abs"] = (advantages.abs() * weights).sum() / weight_sum
+    if self_imitation is not None:
+        advantages = (self_imitation.returns - q_values.detach().min(dim=0).values).clamp_min(0.0)
+        per_sample = per_sample - self_imitation.coef * advantages * taken_log_prob
+        statistics["self_imitation_fraction"] = ((advantages > 0).float() * weights).sum() / weight_sum
+        statistics["self_imitation_advantage"] = (advantages * weights).sum() / weight_sum
     loss = (per_sample * weights).sum() / weight_sum
     return loss, log_prob.detach(), statistics
 

@@ -61,7 +61,7 @@ def squashed_log_prob(mean_actions: th.Tensor, log_std: th.Tensor, actions: th.T
     """
     The log-likelihood of squashed actions under a tanh-squashed Gaussian (SB3's ``SquashedDiagGaussianDistribution.
     log_prob`` without torch.distributions). Actions at +-1 are moved inside by the float's epsilon, as SB3's
-    ``TanhBijector.inverse`` does: two distributions then read the same Gaussian point, and their ratio stays finite.
+    ``TanhBijector.inverse`` does, so that their log-likelihood stays finite.
 
     :param mean_actions: Means of the Gaussian before the squashing, shape (B, action_dim)
     :param log_std: Its log standard deviations, shape (action_dim,)
@@ -186,16 +186,6 @@ class Actor(BasePolicy):
         mean_actions, log_std = self.get_action_dist_params(obs)
         actions, log_prob = reparameterised_sample(mean_actions, log_std)
         return actions, log_prob, squashed_log_prob(mean_actions.float(), log_std.float(), taken_actions)
-
-    @th.no_grad()
-    def log_prob(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        """
-        :param obs: Observations
-        :param actions: Squashed actions
-        :return: The log-likelihood of the actions (float32, no gradient)
-        """
-        mean_actions, log_std = self.get_action_dist_params(obs)
-        return squashed_log_prob(mean_actions.float(), log_std.float(), actions)
 
     def sample(self, obs: PyTorchObs, n_samples: int) -> th.Tensor:
         """
@@ -542,17 +532,6 @@ class CGACPolicy(BasePolicy):
         :return: Target Q-values of shape (B,)
         """
         return self.critic_target.q_values(obs, actions).min(dim=0).values
-
-    def behaviour_log_prob(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        """
-        The log-likelihood of actions under the behaviour policy, the averaged actor (the likelihood ratio's
-        denominator of CGAC's ``pg_coef`` term).
-
-        :param obs: Observations, batch size B
-        :param actions: Squashed actions, shape (B, action_dim)
-        :return: Log probabilities of shape (B,)
-        """
-        return self.actor_avg.log_prob(obs, actions)
 
     def parameters_finite(self, *extra: th.Tensor) -> th.Tensor:
         """

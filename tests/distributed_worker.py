@@ -41,9 +41,11 @@ CRITIC_OPTIONS = dict(critic_layer_norm=True, n_bins=21, actor_q_reduction="mean
 def small_model(critic_options: bool = False) -> CGAC:
     env = make_vec_env("Pendulum-v1", n_envs=8)
     policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True, **(CRITIC_OPTIONS if critic_options else {}))
-    # With the critic options also the likelihood-ratio term, whose log-likelihoods every rank keeps for its own envs
-    pg_coef = 1.0 if critic_options else 0.0
-    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, pg_coef=pg_coef, policy_kwargs=policy_kwargs, seed=0)
+    # With the critic options also the self-imitation term of the actor loss
+    coef = 1.0 if critic_options else 0.0
+    return CGAC(
+        "MlpPolicy", env, batch_size=64, n_steps=2, self_imitation_coef=coef, policy_kwargs=policy_kwargs, seed=0
+    )
 
 
 def flat_state(model: CGAC) -> th.Tensor:
@@ -80,19 +82,19 @@ def main() -> None:
         parallel = DataParallel(model.device)
         data = model.rollout_buffer.sample(model.batch_size)
         reference = copy.deepcopy(model.critic)  # the same parameters on both ranks, before the update
-        loss, _ = critic_loss(model.critic, *data[:4], data.weights.sum().clamp_min(1.0), None, parallel.gather)
+        loss, _ = critic_loss(model.critic, *data, data.weights.sum().clamp_min(1.0), None, parallel.gather)
         model.critic.zero_grad()
         loss.backward()
         parallel.average_gradients(list(model.critic.parameters()))
         averaged = th.cat([param.grad.reshape(-1) for param in model.critic.parameters()])
         # One process that sees both ranks' minibatches
         gathered = []
-        for tensor in data[:4]:  # a Box observation: every field is a tensor (no log-probabilities: pg_coef is 0)
+        for tensor in data:  # a Box observation: every field is a tensor
             parts = [th.zeros_like(tensor) for _ in range(world_size)]
             dist.all_gather(parts, tensor.contiguous())
             gathered.append(th.cat(parts))
         union = CGACSamples(*gathered)
-        loss, _ = critic_loss(reference, *union[:4], union.weights.sum().clamp_min(1.0), None)
+        loss, _ = critic_loss(reference, *union, union.weights.sum().clamp_min(1.0), None)
         reference.zero_grad()
         loss.backward()
         single = th.cat([param.grad.reshape(-1) for param in reference.parameters()])
