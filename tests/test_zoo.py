@@ -548,3 +548,15 @@ def test_zoo_cli_bad_input_in_one_line(tmp_path, capsys, command, arguments, mes
     error = capsys.readouterr().err
     # One line of ours, last (a dependency may print its own notices on import), and no stack trace
     assert message in error.strip().splitlines()[-1] and "Traceback" not in error, error
+
+
+def test_behaviour_ratio_script_tiny_budget():
+    command = [sys.executable, str(ROOT / "experiments" / "behaviour_ratio.py"), "--env", "Pendulum-v1", "--n-envs", "16",
+               "--steps", "960", "--window", "32"]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = [[cell.strip() for cell in line.split("|")] for line in result.stdout.splitlines() if line.count("|") == 3]
+    ages = [row[0] for row in rows[1:]]
+    assert ages == ["0", "1", "3", "10", "30", "31"]
+    for row in rows[1:]:
+        assert float(row[1]) >= 0 and 0 <= float(row[2]) <= 1 and 0 <= float(row[3]) <= 1
