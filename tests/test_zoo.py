@@ -556,7 +556,7 @@ def test_behaviour_ratio_script_tiny_budget():
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     rows = [[cell.strip() for cell in line.split("|")] for line in result.stdout.splitlines() if line.count("|") == 3]
-    ages = [row[0] for row in rows[1:]]
+    ages = [row[0] for row in rows]
     assert ages == ["0", "1", "3", "10", "30", "31"]
-    for row in rows[1:]:
+    for row in rows:
         assert float(row[1]) >= 0 and 0 <= float(row[2]) <= 1 and 0 <= float(row[3]) <= 1
