@@ -12,9 +12,10 @@ import argparse
 
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 
 from sb3_cgac import CGAC
-from sb3_cgac.policies import Actor, squashed_log_prob
+from sb3_cgac.policies import Actor
 from sb3_cgac.vec_env import make_vec_env
 
 CLIP_RANGE = 0.2  # PPO's default
@@ -25,7 +26,8 @@ CRITIC = dict(net_arch=dict(pi=[256, 256], qf=[512, 256]), critic_layer_norm=Tru
 def log_prob(actor: Actor, obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
     with th.no_grad():
         mean_actions, log_std = actor.get_action_dist_params(obs)
-        return squashed_log_prob(mean_actions, log_std, actions)
+        distribution = SquashedDiagGaussianDistribution(actions.shape[-1]).proba_distribution(mean_actions, log_std)
+        return distribution.log_prob(actions)
 
 
 class RecordBehaviour(BaseCallback):

@@ -23,7 +23,7 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     warn_few_envs,
 )
-from sb3_cgac.losses import SelfImitationTerm, actor_loss, critic_loss, update_log_ent_coef
+from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
 
@@ -71,9 +71,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         the entropy is at or above its target; ``True`` is the paper's ``alpha = min(alpha_prev, alpha_new)``;
         ``False`` leaves it free (SAC)
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
-    :param self_imitation_coef: Weight of a self-imitation term in the actor loss beside the critic gradient: the
-        log-likelihood of the window's taken actions, each weighted by how far its Q-GAE target exceeds the critics'
-        value of the actor's own action (``sb3_cgac.losses.actor_loss``); 0 (the paper's actor loss) leaves it out
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
     :param cuda_graphs: Replay the critic and actor updates as CUDA graphs (CUDA only; a warning elsewhere)
@@ -124,7 +121,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
         max_grad_norm: float = 20.0,
-        self_imitation_coef: float = 0.0,
         update_precision: str = "float32",
         cuda_graphs: bool = False,
         rollout_buffer_class: type[CGACRolloutBuffer] | None = None,
@@ -161,7 +157,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.buffer_window = buffer_window
         self.policy_delay = policy_delay
         self.gae_horizon = gae_horizon
-        self.self_imitation_coef = self_imitation_coef
         # What the constructor was given; _setup_model resolves it into batch_size, critic_updates_per_step, tau, policy_tau
         self._requested_update_cost = (batch_size, critic_updates_per_step, tau, policy_tau)
         self.predict_tau = predict_tau
@@ -188,7 +183,6 @@ class CGAC(WindowOnPolicyAlgorithm):
             gamma=gamma,
             gae_lambda=gae_lambda,
             max_grad_norm=max_grad_norm,
-            self_imitation_coef=self_imitation_coef,
             ent_coef=ent_coef,
             ent_coef_monotone=ent_coef_monotone,
             update_precision=update_precision,
@@ -284,9 +278,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         """One critic update (paper Eq. 8) on a minibatch; returns its statistics by name."""
         weight_sum = data.weights.sum().clamp_min(1.0)
         gather = self._parallel.gather if self._parallel is not None else None
-        loss, q_mean = critic_loss(
-            self.critic, data.observations, data.actions, data.returns, data.weights, weight_sum, self._autocast_dtype, gather
-        )
+        loss, q_mean = critic_loss(self.critic, *data, weight_sum, self._autocast_dtype, gather)
         self.critic.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self._parallel is not None:  # data-parallel: the mean gradient of every rank's minibatch
@@ -304,10 +296,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         ent_coef = self._ent_coef()
         # Only dQ/da is needed for the actor loss: the critics' own gradients are not computed
         self.critic.set_q_requires_grad(False)
-        self_imitation = None
-        if self.self_imitation_coef > 0:
-            self_imitation = SelfImitationTerm(self.self_imitation_coef, data.actions, data.returns)
-        loss, log_prob, imitation_statistics = actor_loss(
+        loss, log_prob = actor_loss(
             self.actor,
             self.critic,
             data.observations,
@@ -316,7 +305,6 @@ class CGAC(WindowOnPolicyAlgorithm):
             ent_coef,
             self._autocast_dtype,
             self.policy.actor_q_reduction,
-            self_imitation,
         )
         self.actor.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -326,7 +314,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         grad_norm = total_grad_norm(self._actor_parameters)
         self.actor.optimizer.step()
 
-        statistics = {"actor_loss": loss.detach(), "actor_grad_norm": grad_norm, **imitation_statistics}
+        statistics = {"actor_loss": loss.detach(), "actor_grad_norm": grad_norm}
         statistics["entropy"] = -(log_prob * data.weights).sum() / weight_sum
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)

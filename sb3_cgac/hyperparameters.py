@@ -79,7 +79,6 @@ def check_hyperparameters(
     gamma: float,
     gae_lambda: float,
     max_grad_norm: float | None,
-    self_imitation_coef: float,
     ent_coef: str | float,
     ent_coef_monotone: bool | str,
     update_precision: str,
@@ -117,12 +116,6 @@ def check_hyperparameters(
         raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {gamma} and {gae_lambda}.")
     if max_grad_norm is not None and max_grad_norm <= 0:
         raise ValueError(f"CGAC: max_grad_norm must be > 0, got {max_grad_norm}.")
-    coef = self_imitation_coef
-    if isinstance(coef, bool) or not isinstance(coef, (int, float)) or not (math.isfinite(coef) and coef >= 0):
-        raise ValueError(
-            f"CGAC: self_imitation_coef must be a finite number >= 0 (the weight of the self-imitation term in the actor "
-            f"loss, 0 to leave it out), got {coef!r}."
-        )
     parse_ent_coef(ent_coef)
     check_choice(
         "ent_coef_monotone",

@@ -4,7 +4,6 @@ its algorithms).
 """
 
 from collections.abc import Callable
-from typing import NamedTuple
 
 import torch as th
 from stable_baselines3.common.type_aliases import PyTorchObs
@@ -70,14 +69,6 @@ def critic_loss(
     return loss / weight_sum, q_values[0].detach().mean()
 
 
-class SelfImitationTerm(NamedTuple):
-    """The inputs of the self-imitation term of ``actor_loss``: a minibatch's taken actions and what they earned."""
-
-    coef: float
-    actions: th.Tensor
-    returns: th.Tensor
-
-
 def actor_loss(
     actor: Actor,
     critic: CGACCritic,
@@ -87,19 +78,11 @@ def actor_loss(
     ent_coef: th.Tensor,
     autocast_dtype: th.dtype | None = None,
     q_reduction: str = "min",
-    self_imitation: SelfImitationTerm | None = None,
-) -> tuple[th.Tensor, th.Tensor, dict[str, th.Tensor]]:
+) -> tuple[th.Tensor, th.Tensor]:
     """
     The actor loss of paper Eq. 7, ``E[alpha * log pi(a|s) - Q(s, a)]`` with reparameterised actions, where Q is the
     minimum of the critics (Eq. 11) or their mean. The critics' parameters should not require gradients: only dQ/da
     is needed.
-
-    With ``self_imitation``, the loss also subtracts ``coef * max(A, 0) * log pi(a_taken|s)``, self-imitation learning's
-    policy term (Oh et al. 2018): the actor imitates the window's taken actions that did better than it does now, by
-    their advantage ``A = Y - min_i Q_i(s, a_pi)``, the Q-GAE target of the taken action (Eq. 9-10) less the critics'
-    value of the actor's reparameterised action (the same minimum as the targets take). It follows the returns the
-    actions earned, not the critics' slope, and needs no likelihood ratio: the window's actions come from earlier
-    averaged actors, whose ratios to the trained actor are far from 1.
 
     :param actor: The trained actor
     :param critic: The trained critics
@@ -109,27 +92,15 @@ def actor_loss(
     :param ent_coef: The entropy coefficient alpha (detached)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
     :param q_reduction: How the actor reads the critics: ``"min"`` (paper Eq. 11) or ``"mean"``
-    :param self_imitation: The self-imitation term's coefficient and inputs; None: no such term
-    :return: The loss, the log-probabilities of the sampled actions (detached), and the self-imitation term's
-        statistics by name (empty without it)
+    :return: The loss, and the log-probabilities of the sampled actions (detached)
     """
     with th.autocast(weights.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
-        if self_imitation is None:
-            actions_pi, log_prob = actor.action_log_prob(observations)
-        else:
-            actions_pi, log_prob, taken_log_prob = actor.action_log_probs(observations, self_imitation.actions)
+        actions_pi, log_prob = actor.action_log_prob(observations)
         q_values = critic.q_values(observations, actions_pi).float()
     q_value = q_values.min(dim=0).values if q_reduction == "min" else q_values.mean(dim=0)
     log_prob = log_prob.float()
-    per_sample = ent_coef * log_prob - q_value
-    statistics: dict[str, th.Tensor] = {}
-    if self_imitation is not None:
-        advantages = (self_imitation.returns - q_values.detach().min(dim=0).values).clamp_min(0.0)
-        per_sample = per_sample - self_imitation.coef * advantages * taken_log_prob
-        statistics["self_imitation_fraction"] = ((advantages > 0).float() * weights).sum() / weight_sum
-        statistics["self_imitation_advantage"] = (advantages * weights).sum() / weight_sum
-    loss = (per_sample * weights).sum() / weight_sum
-    return loss, log_prob.detach(), statistics
+    loss = ((ent_coef * log_prob - q_value) * weights).sum() / weight_sum
+    return loss, log_prob.detach()
 
 
 def clamped_log_ent_coef(

@@ -38,43 +38,6 @@ TANH_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution's epsilon in the l
 DEFAULT_NET_ARCH = [256, 256]
 
 
-def reparameterised_sample(mean_actions: th.Tensor, log_std: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-    """
-    A tanh-squashed Gaussian sample with its log-likelihood: the arithmetic of SB3's
-    ``SquashedDiagGaussianDistribution.log_prob_from_params``, op for op, without torch.distributions, whose argument
-    checks read tensors on the host (a device sync in every update on a GPU, which a CUDA graph cannot hold).
-
-    :param mean_actions: Means of the Gaussian before the squashing, shape (B, action_dim)
-    :param log_std: Its log standard deviations, shape (action_dim,)
-    :return: Squashed actions and their log probability
-    """
-    std = th.ones_like(mean_actions) * log_std.exp()
-    noise = th.empty(std.shape, dtype=mean_actions.dtype, device=mean_actions.device).normal_()
-    gaussian_actions = mean_actions + noise * std
-    actions = th.tanh(gaussian_actions)
-    gaussian_log_prob = -((gaussian_actions - mean_actions) ** 2) / (2 * std**2) - std.log() - LOG_SQRT_2PI
-    log_prob = gaussian_log_prob.sum(dim=1) - th.sum(th.log(1 - actions**2 + TANH_EPSILON), dim=1)
-    return actions, log_prob
-
-
-def squashed_log_prob(mean_actions: th.Tensor, log_std: th.Tensor, actions: th.Tensor) -> th.Tensor:
-    """
-    The log-likelihood of squashed actions under a tanh-squashed Gaussian (SB3's ``SquashedDiagGaussianDistribution.
-    log_prob`` without torch.distributions). Actions at +-1 are moved inside by the float's epsilon, as SB3's
-    ``TanhBijector.inverse`` does, so that their log-likelihood stays finite.
-
-    :param mean_actions: Means of the Gaussian before the squashing, shape (B, action_dim)
-    :param log_std: Its log standard deviations, shape (action_dim,)
-    :param actions: Squashed actions, shape (B, action_dim)
-    :return: Log probabilities, shape (B,)
-    """
-    eps = th.finfo(actions.dtype).eps
-    actions = actions.clamp(-1.0 + eps, 1.0 - eps)
-    gaussian_actions = th.atanh(actions)
-    gaussian_log_prob = -((gaussian_actions - mean_actions) ** 2) / (2 * th.exp(2 * log_std)) - log_std - LOG_SQRT_2PI
-    return gaussian_log_prob.sum(dim=1) - th.sum(th.log(1 - actions**2 + TANH_EPSILON), dim=1)
-
-
 class Actor(BasePolicy):
     """
     Tanh-squashed diagonal Gaussian actor (paper Sec. 4.1: "the policy network outputs the mean and
@@ -173,19 +136,16 @@ class Actor(BasePolicy):
         :return: Squashed actions and their log probability
         """
         mean_actions, log_std = self.get_action_dist_params(obs)
-        return reparameterised_sample(mean_actions, log_std)
-
-    def action_log_probs(self, obs: PyTorchObs, taken_actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        """
-        ``action_log_prob`` and, from the same forward pass, the log-likelihood of actions already taken.
-
-        :param obs: Observations
-        :param taken_actions: Squashed actions taken at these observations
-        :return: Reparameterised squashed actions, their log probability and that of ``taken_actions`` (float32)
-        """
-        mean_actions, log_std = self.get_action_dist_params(obs)
-        actions, log_prob = reparameterised_sample(mean_actions, log_std)
-        return actions, log_prob, squashed_log_prob(mean_actions.float(), log_std.float(), taken_actions)
+        # The arithmetic of SB3's SquashedDiagGaussianDistribution.log_prob_from_params, op for op, without
+        # torch.distributions: its argument checks read tensors on the host, a device sync in every update on a GPU,
+        # which a CUDA graph cannot hold
+        std = th.ones_like(mean_actions) * log_std.exp()
+        noise = th.empty(std.shape, dtype=mean_actions.dtype, device=mean_actions.device).normal_()
+        gaussian_actions = mean_actions + noise * std
+        actions = th.tanh(gaussian_actions)
+        gaussian_log_prob = -((gaussian_actions - mean_actions) ** 2) / (2 * std**2) - std.log() - LOG_SQRT_2PI
+        log_prob = gaussian_log_prob.sum(dim=1) - th.sum(th.log(1 - actions**2 + TANH_EPSILON), dim=1)
+        return actions, log_prob
 
     def sample(self, obs: PyTorchObs, n_samples: int) -> th.Tensor:
         """

@@ -41,11 +41,7 @@ CRITIC_OPTIONS = dict(critic_layer_norm=True, n_bins=21, actor_q_reduction="mean
 def small_model(critic_options: bool = False) -> CGAC:
     env = make_vec_env("Pendulum-v1", n_envs=8)
     policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True, **(CRITIC_OPTIONS if critic_options else {}))
-    # With the critic options also the self-imitation term of the actor loss
-    coef = 1.0 if critic_options else 0.0
-    return CGAC(
-        "MlpPolicy", env, batch_size=64, n_steps=2, self_imitation_coef=coef, policy_kwargs=policy_kwargs, seed=0
-    )
+    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, policy_kwargs=policy_kwargs, seed=0)
 
 
 def flat_state(model: CGAC) -> th.Tensor:

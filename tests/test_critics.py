@@ -85,9 +85,7 @@ def test_actor_q_reduction(reduction):
     obs = th.randn(8, 3)
     weights = th.ones(8)
     th.manual_seed(1)
-    loss, log_prob, _ = actor_loss(
-        model.actor, model.critic, obs, weights, weights.sum(), th.tensor(0.0), q_reduction=reduction
-    )
+    loss, log_prob = actor_loss(model.actor, model.critic, obs, weights, weights.sum(), th.tensor(0.0), q_reduction=reduction)
     th.manual_seed(1)
     actions, _ = model.actor.action_log_prob(obs)
     q_values = model.critic.q_values(obs, actions)
