@@ -3,6 +3,8 @@ Time per gradient step of CGAC against SB3 SAC on the same networks and batch, m
 
     python benchmarks/updates.py                                     # the full table (a few minutes on 2 cores)
     python benchmarks/updates.py --batch-sizes 512 --critics 256,256 --paths default bf16
+    python benchmarks/updates.py --batch-sizes 512 --critics 256,256 512,256 --activation elu \\
+        --paths default bf16 critic-options critic-options+bf16     # the critic screen's options, float32 and bf16
     python benchmarks/updates.py --baseline 179b5ab                  # also CGAC as it was at that git revision
     python benchmarks/updates.py --paths bf16 --baseline 3ad9cec --baseline-path bf16   # one path, old against new
     python benchmarks/updates.py --e2e Pendulum-v1 HalfCheetah-v5 --baseline 179b5ab   # end to end, zoo entries
@@ -41,24 +43,30 @@ from timing import machine, take_turns  # benchmarks/timing.py
 ROOT = Path(__file__).resolve().parents[1]
 OBS_DIM, ACTION_DIM = 17, 6  # HalfCheetah-v5's spaces
 N_ENVS, WINDOW = 128, 32  # a full window holds 4096 transitions
+CRITIC_OPTIONS = {"critic_layer_norm": True, "n_bins": 101, "actor_q_reduction": "mean"}
 PATHS: dict[str, dict[str, Any]] = {
     "default": {},  # the package's defaults, or with --e2e the entry as it is
     "float32": {"update_precision": "float32"},
     "bf16": {"update_precision": "bfloat16"},
+    # The critic screen's options (docs/tuning.md): LayerNorm critics with 101-bin categorical heads, the actor on their mean
+    "critic-options": {"policy_kwargs": CRITIC_OPTIONS},
+    "critic-options+bf16": {"policy_kwargs": CRITIC_OPTIONS, "update_precision": "bfloat16"},
     # CUDA only: the updates replayed from CUDA graphs
     "cuda-graphs": {"cuda_graphs": True},
     "bf16+cuda-graphs": {"update_precision": "bfloat16", "cuda_graphs": True},
 }
 
 
-def matmul_gflop(batch: int, actor_arch: list[int], critic_arch: list[int], n_critics: int, algo: str) -> float:
-    """Matmul GFLOP of one gradient step (see the module docstring)."""
+def matmul_gflop(
+    batch: int, actor_arch: list[int], critic_arch: list[int], n_critics: int, algo: str, critic_outputs: int = 1
+) -> float:
+    """Matmul GFLOP of one gradient step (see the module docstring); ``critic_outputs``: bins of a categorical critic."""
 
     def forward(sizes: list[int]) -> float:
         return 2.0 * batch * sum(a * b for a, b in itertools.pairwise(sizes))
 
     actor = forward([OBS_DIM, *actor_arch, 2 * ACTION_DIM])
-    critics = n_critics * forward([OBS_DIM + ACTION_DIM, *critic_arch, 1])
+    critics = n_critics * forward([OBS_DIM + ACTION_DIM, *critic_arch, critic_outputs])
     # SAC: targets (actor and target critics forward), critic update, actor update with critic weight gradients.
     # CGAC: critic update, actor update through the critics without their weight gradients.
     sac = algo == "sac"
@@ -309,7 +317,9 @@ def measure(args: argparse.Namespace, batch: int, critic: list[int], baseline: s
     rows = []
     for candidate in candidates:
         seconds = median(candidate.times)
-        gflop = matmul_gflop(batch, args.actor, critic, 2, candidate.algo.removesuffix("-gemms"))
+        path = PATHS.get(candidate.name.removeprefix("CGAC "), {})
+        outputs = path.get("policy_kwargs", {}).get("n_bins", 1)
+        gflop = matmul_gflop(batch, args.actor, critic, 2, candidate.algo.removesuffix("-gemms"), outputs)
         vs_previous = f"{seconds / median(candidates[-1].times):.2f}" if baseline is not None else "-"
         rows.append(
             f"| {batch} | {critic} | {candidate.name} | {seconds * 1e3:.2f} | {seconds / sac_time:.2f} | "
