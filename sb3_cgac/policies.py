@@ -187,7 +187,8 @@ class CGACPolicy(BasePolicy):
     :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
     :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
         (Adam and AdamW get ``fused=True`` unless ``fused`` or ``foreach`` is given: one kernel per step)
-    :param n_critics: Number of Q networks (the value target and the actor use their minimum, paper Eq. 11)
+    :param n_critics: Number of Q networks (the value targets use their minimum, paper Eq. 11, and the actor as
+        ``actor_q_reduction`` says); 1: a single critic, whose targets have no minimum to take
     :param share_features_extractor: Whether actor and critic share the features extractor
     :param normalize_observations: Normalise observations with running statistics inside the policy, clipped at
         +-5 (the authors' code always does), so that no ``VecNormalize`` is needed; the statistics are updated
@@ -263,6 +264,11 @@ class CGACPolicy(BasePolicy):
             raise ValueError(
                 f"CGACPolicy: n_bins must be None (one Q-value per critic) or an integer >= 2 (bins of a categorical "
                 f"critic, e.g. 101), got {n_bins!r}."
+            )
+        if isinstance(n_critics, bool) or not isinstance(n_critics, int) or n_critics < 1:
+            raise ValueError(
+                f"CGACPolicy: n_critics must be an integer >= 1 (the paper's twin critics: 2; one critic: no minimum in the "
+                f"targets), got {n_critics!r}."
             )
         if actor_q_reduction not in ("min", "mean"):
             raise ValueError(f"CGACPolicy: actor_q_reduction must be 'min' or 'mean', got {actor_q_reduction!r}.")

@@ -94,6 +94,17 @@ def test_actor_q_reduction(reduction):
     assert log_prob.shape == (8,)
 
 
+def test_one_critic():
+    # A single critic: the targets and the actor read it as it is (no minimum of two)
+    model = make_model(n_critics=1, **OPTIONS)
+    assert len(model.critic.q_networks) == len(model.critic_target.q_networks) == 1
+    obs, actions = th.randn(6, 3), th.rand(6, 1) * 2 - 1
+    assert th.allclose(model.policy.target_q_value(obs, actions), model.critic_target.q_values(obs, actions)[0])
+    model.learn(400)
+    assert model._n_updates > 0
+    assert all(th.isfinite(p).all() for p in model.policy.parameters())
+
+
 @pytest.mark.parametrize("update_precision", ["float32", "bfloat16"])
 def test_run_with_every_option(update_precision):
     env = make_vec_env("Pendulum-v1", n_envs=4, seed=0)
@@ -122,6 +133,8 @@ def test_save_load_keeps_the_options(tmp_path):
         (dict(n_bins=1), "n_bins"),
         (dict(n_bins=50.5), "n_bins"),
         (dict(actor_q_reduction="max"), "actor_q_reduction"),
+        (dict(n_critics=0), "n_critics"),
+        (dict(n_critics=1.0), "n_critics"),
     ],
 )
 def test_bad_critic_options(kwargs, message):
