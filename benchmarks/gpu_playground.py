@@ -22,6 +22,9 @@ what it measured; a measurement that fails is listed there and the others still 
   each phase (so not part of the rate), the split of CGAC's wall-clock between the simulator's step, the rest of the
   collection (sampling, normalisation, the window), the updates and everything else: where CUDA graphs of the
   collection could pay; on CUDA, then the host syncs that torch makes in 20 more iterations of CGAC;
+- CGAC with the critics of the LeapCube entry (``CRITIC_OPTIONS``: LayerNorm [512, 256] critics with 101-bin
+  categorical heads, the actor on their mean) at ``--learn-envs``, at the device's batch (on a GPU the paper's 4,096):
+  steps/s after a warm-up, beside the default critics';
 - raw and CGAC (steps/s after a warm-up, and the split) at each other ``--envs``.
 """
 
@@ -52,6 +55,10 @@ from sb3_cgac.vec_env import TorchVecEnv, make_vec_env
 # CGAC's learning run is trained again with eager updates if its CUDA graphs fail within these seconds (at capture);
 # a later failure is not retried: the device's time limit
 RETRY_WITHIN = 60.0
+# The critics that the LeapCube entry of hyperparams/cgac.yml trains (docs/tuning.md, "The critic screen")
+CRITIC_OPTIONS = dict(
+    net_arch=dict(pi=[256, 256], qf=[512, 256]), critic_layer_norm=True, n_bins=101, actor_q_reduction="mean"
+)
 
 
 class StopAfter(BaseCallback):
@@ -148,14 +155,16 @@ def raw_rate(args: argparse.Namespace, n_envs: int) -> float:
     return steps * n_envs / (time.perf_counter() - start)
 
 
-def build(algo: str, n_envs: int, args: argparse.Namespace, cuda_graphs: bool = False) -> BaseAlgorithm:
+def build(
+    algo: str, n_envs: int, args: argparse.Namespace, cuda_graphs: bool = False, critic_options: bool = False
+) -> BaseAlgorithm:
     env = playground(args, n_envs, seed=0)
     dict_obs = isinstance(env.observation_space, spaces.Dict)
     policy = "MultiInputPolicy" if dict_obs else "MlpPolicy"
     # Playground's robot tasks: the actors read what the robot senses ("state"), the critics everything
     actor_keys = ["state"] if dict_obs and "state" in env.observation_space.spaces else None  # type: ignore[attr-defined]
     if algo == "cgac":
-        kwargs = dict(actor_keys=actor_keys)
+        kwargs: dict[str, Any] = dict(actor_keys=actor_keys, **(CRITIC_OPTIONS if critic_options else {}))
         return CGAC(policy, env, seed=0, device=args.device, cuda_graphs=cuda_graphs, policy_kwargs=kwargs)
     from sb3_cgac.rsl_rl import RslPPO
 
@@ -249,11 +258,15 @@ def phases(args: argparse.Namespace) -> list[tuple[str, Callable[[dict[str, Any]
             results["syncs"] = host_syncs(model, iterations=20)
             print(f"host syncs: {results['syncs']}", flush=True)
 
-    def throughput(n_envs: int, cuda_graphs: bool) -> Callable[[dict[str, Any]], None]:
+    def throughput(n_envs: int, cuda_graphs: bool, critic_options: bool = False) -> Callable[[dict[str, Any]], None]:
         def measure(results: dict[str, Any]) -> None:
-            model = build("cgac", n_envs, args, cuda_graphs=cuda_graphs)
+            model = build("cgac", n_envs, args, cuda_graphs=cuda_graphs, critic_options=critic_options)
             assert isinstance(model, CGAC)
             rate = train_rate(model, args.seconds, warmup_steps=40 * n_envs)
+            if critic_options:
+                results["cgac_critic"][n_envs] = rate
+                print(f"cgac {n_envs}, LeapCube's critics, batch {model.batch_size}: {rate:,.0f} steps/s", flush=True)
+                return
             if cuda_graphs != args.cuda_graphs:  # the other update path, for the gain of the graphs
                 results["cgac_eager"][n_envs] = rate
                 print(f"cgac {n_envs}, eager updates: {rate:,.0f} steps/s", flush=True)
@@ -268,6 +281,8 @@ def phases(args: argparse.Namespace) -> list[tuple[str, Callable[[dict[str, Any]
     if args.cuda_graphs:  # first: a rate at --learn-envs even if the graphs fail on this path
         found.append((f"cgac {args.learn_envs} eager", throughput(args.learn_envs, cuda_graphs=False)))
     found += [("learning cgac", learning("cgac")), ("host syncs", syncs), ("learning rsl_ppo", learning("rsl_ppo"))]
+    critic_options = throughput(args.learn_envs, args.cuda_graphs, critic_options=True)
+    found.append((f"cgac {args.learn_envs} critic options", critic_options))
     for n_envs in args.envs:
         if n_envs != args.learn_envs:
             found += [(f"raw {n_envs}", raw(n_envs)), (f"cgac {n_envs}", throughput(n_envs, args.cuda_graphs))]
@@ -293,7 +308,7 @@ def main() -> int:
     args.env_kwargs = {"impl": args.impl, "menagerie_path": args.menagerie}
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {"machine": machine(args.device), "task": args.task, "errors": []}
-    results.update({key: {} for key in ("raw", "cgac", "cgac_eager", "split", "learning")})
+    results.update({key: {} for key in ("raw", "cgac", "cgac_eager", "cgac_critic", "split", "learning")})
     # One phase that fails (out of memory at 16,384 envs, say) is reported in the table; the others still run
     for name, measure in phases(args):
         try:
@@ -325,6 +340,14 @@ def table(results: dict[str, Any], args: argparse.Namespace) -> str:
         shares = " / ".join(f"{split[phase]:.0%}" for phase in ("env", "collection", "updates", "else")) if split else "-"
         eager_text = f"{eager:,.0f}" if eager else "-"
         lines.append(f"| {n_envs:,} | {raw or 0:,.0f} | {cgac or 0:,.0f} | {ratio} | {eager_text} | {shares} |")
+    critic_rate, default_rate = results.get("cgac_critic", {}).get(args.learn_envs), results["cgac"].get(args.learn_envs)
+    if critic_rate:
+        ratio = f" ({critic_rate / default_rate:.2f}x the default critics')" if default_rate else ""
+        lines += [
+            "",
+            f"CGAC with the LeapCube entry's critics (LayerNorm [512, 256], 101-bin categorical heads, the actor on their "
+            f"mean) at {args.learn_envs:,} envs, {updates}: {critic_rate:,.0f} steps/s{ratio}.",
+        ]
     lines += [
         "",
         f"Learning: {args.learn_seconds:.0f} s of training at {args.learn_envs:,} envs (after a warm-up of 40 steps per "

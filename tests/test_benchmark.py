@@ -252,3 +252,17 @@ def test_gpu_benchmark_counts_host_syncs(monkeypatch):
         in table
     )
     assert "test_benchmark.py:" in table  # where the syncs were made
+
+
+def test_gpu_benchmark_reports_the_entry_critics_beside_the_default(monkeypatch):
+    # The LeapCube entry's critics are timed at --learn-envs and reported as a ratio to the default critics' rate there
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import gpu_playground
+
+    args = SimpleNamespace(envs=[8], learn_envs=8, cuda_graphs=True, impl="jax", learn_seconds=3.0)
+    assert "cgac 8 critic options" in [name for name, _ in gpu_playground.phases(args)]
+    results = {"machine": "a test machine", "task": "CartpoleBalance", "errors": []}
+    results.update({key: {} for key in ("raw", "cgac", "cgac_eager", "split", "learning")})
+    results["cgac"][8], results["cgac_critic"] = 1000.0, {8: 400.0}
+    table = gpu_playground.table(results, args)
+    assert "at 8 envs, CUDA graphs of the updates: 400 steps/s (0.40x the default critics')." in table
