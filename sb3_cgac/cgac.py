@@ -70,11 +70,6 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param ent_coef_monotone: Clamp of the learned alpha (Sec. 4.2): ``"above_target"`` keeps it from rising while
         the entropy is at or above its target; ``True`` is the paper's ``alpha = min(alpha_prev, alpha_new)``;
         ``False`` leaves it free (SAC)
-    :param actor_deviation_coef: Weight of a penalty on the trained actor's deterministic actions leaving the averaged
-        actor's (the one that acts) by more than ``actor_deviation_threshold`` (``losses.action_deviation_penalty``,
-        actor-critic PQN's; PQN weighs it 50); 0: none
-    :param actor_deviation_threshold: Mean absolute difference of the squashed actions, in [-1, 1] units, from which
-        the deviation penalty applies
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
@@ -125,8 +120,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
-        actor_deviation_coef: float = 0.0,
-        actor_deviation_threshold: float = 0.1,
         max_grad_norm: float = 20.0,
         update_precision: str = "float32",
         cuda_graphs: bool = False,
@@ -169,8 +162,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.predict_tau = predict_tau
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
-        self.actor_deviation_coef = actor_deviation_coef
-        self.actor_deviation_threshold = actor_deviation_threshold
         self.update_precision = update_precision
         self.cuda_graphs = cuda_graphs
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
@@ -194,8 +185,6 @@ class CGAC(WindowOnPolicyAlgorithm):
             max_grad_norm=max_grad_norm,
             ent_coef=ent_coef,
             ent_coef_monotone=ent_coef_monotone,
-            actor_deviation_coef=actor_deviation_coef,
-            actor_deviation_threshold=actor_deviation_threshold,
             update_precision=update_precision,
             cuda_graphs=cuda_graphs,
         )
@@ -316,9 +305,6 @@ class CGAC(WindowOnPolicyAlgorithm):
             ent_coef,
             self._autocast_dtype,
             self.policy.actor_q_reduction,
-            self.actor_avg if self.actor_deviation_coef > 0 else None,
-            self.actor_deviation_coef,
-            self.actor_deviation_threshold,
         )
         self.actor.optimizer.zero_grad(set_to_none=True)
         loss.backward()

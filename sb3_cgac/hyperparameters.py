@@ -81,8 +81,6 @@ def check_hyperparameters(
     max_grad_norm: float | None,
     ent_coef: str | float,
     ent_coef_monotone: bool | str,
-    actor_deviation_coef: float,
-    actor_deviation_threshold: float,
     update_precision: str,
     cuda_graphs: bool,
 ) -> None:
@@ -101,10 +99,6 @@ def check_hyperparameters(
             "buffer_window (n_steps == buffer_window gives a fresh buffer every rollout)."
         )
     _auto_or("batch_size", batch_size, positive_int)
-    deviation = {"actor_deviation_coef": actor_deviation_coef, "actor_deviation_threshold": actor_deviation_threshold}
-    for deviation_name, number in deviation.items():
-        if isinstance(number, bool) or not isinstance(number, (int, float)) or not 0 <= number < math.inf:
-            raise ValueError(f"CGAC: {deviation_name} must be a finite number >= 0, got {number!r}.")
     _auto_or("critic_updates_per_step", critic_updates_per_step, positive_int)
     _auto_or("tau", tau, _rate)
     _auto_or("policy_tau", policy_tau, _rate)

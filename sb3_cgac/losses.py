@@ -78,15 +78,11 @@ def actor_loss(
     ent_coef: th.Tensor,
     autocast_dtype: th.dtype | None = None,
     q_reduction: str = "min",
-    anchor: Actor | None = None,
-    deviation_coef: float = 0.0,
-    deviation_threshold: float = 0.1,
 ) -> tuple[th.Tensor, th.Tensor]:
     """
     The actor loss of paper Eq. 7, ``E[alpha * log pi(a|s) - Q(s, a)]`` with reparameterised actions, where Q is the
-    minimum of the critics (Eq. 11) or their mean, plus ``deviation_coef`` times ``action_deviation_penalty`` of the
-    actor's deterministic actions from ``anchor``'s when an anchor is given. The critics' parameters should not require
-    gradients: only dQ/da is needed.
+    minimum of the critics (Eq. 11) or their mean. The critics' parameters should not require gradients: only dQ/da
+    is needed.
 
     :param actor: The trained actor
     :param critic: The trained critics
@@ -96,42 +92,15 @@ def actor_loss(
     :param ent_coef: The entropy coefficient alpha (detached)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
     :param q_reduction: How the actor reads the critics: ``"min"`` (paper Eq. 11) or ``"mean"``
-    :param anchor: The actor whose deterministic actions the trained actor's are held near (the averaged actor)
-    :param deviation_coef: Weight of the deviation penalty
-    :param deviation_threshold: See ``action_deviation_penalty``
     :return: The loss, and the log-probabilities of the sampled actions (detached)
     """
     with th.autocast(weights.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
-        mean_actions, log_std = actor.get_action_dist_params(observations)
-        actions_pi, log_prob = actor.action_log_prob_from_params(mean_actions, log_std)
+        actions_pi, log_prob = actor.action_log_prob(observations)
         q_values = critic.q_values(observations, actions_pi).float()
-        if anchor is not None:
-            with th.no_grad():
-                anchor_actions = th.tanh(anchor.get_action_dist_params(observations)[0])
     q_value = q_values.min(dim=0).values if q_reduction == "min" else q_values.mean(dim=0)
     log_prob = log_prob.float()
-    per_sample = ent_coef * log_prob - q_value
-    if anchor is not None:
-        penalty = action_deviation_penalty(th.tanh(mean_actions.float()), anchor_actions.float(), deviation_threshold)
-        per_sample = per_sample + deviation_coef * penalty
-    loss = (per_sample * weights).sum() / weight_sum
+    loss = ((ent_coef * log_prob - q_value) * weights).sum() / weight_sum
     return loss, log_prob.detach()
-
-
-def action_deviation_penalty(actions: th.Tensor, anchor_actions: th.Tensor, threshold: float) -> th.Tensor:
-    """
-    Actor-critic PQN's penalty on large policy changes, per sample: the mean over action dimensions of the Huber loss
-    between ``actions`` and ``anchor_actions`` (squashed, in [-1, 1]), 0 where their mean absolute difference is below
-    ``threshold``. Within the threshold the critic gradient moves the actor freely; beyond it the penalty pulls back.
-
-    :param actions: The trained actor's deterministic actions, shape (batch, action_dim)
-    :param anchor_actions: The anchor's (detached), same shape
-    :param threshold: Mean absolute difference from which the penalty applies
-    :return: The penalties, shape (batch,)
-    """
-    difference = (actions - anchor_actions).abs().mean(dim=-1)
-    huber = th.nn.functional.smooth_l1_loss(actions, anchor_actions, reduction="none").mean(dim=-1)
-    return th.where(difference < threshold, th.zeros_like(huber), huber)
 
 
 def clamped_log_ent_coef(

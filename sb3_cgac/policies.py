@@ -135,16 +135,7 @@ class Actor(BasePolicy):
         :param obs: Observations
         :return: Squashed actions and their log probability
         """
-        return self.action_log_prob_from_params(*self.get_action_dist_params(obs))
-
-    def action_log_prob_from_params(self, mean_actions: th.Tensor, log_std: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """
-        ``action_log_prob`` from the Gaussian's parameters (``get_action_dist_params``).
-
-        :param mean_actions: Mean of the Gaussian before the tanh squashing
-        :param log_std: Its log standard deviation
-        :return: Squashed actions and their log probability
-        """
+        mean_actions, log_std = self.get_action_dist_params(obs)
         # The arithmetic of SB3's SquashedDiagGaussianDistribution.log_prob_from_params, op for op, without
         # torch.distributions: its argument checks read tensors on the host, a device sync in every update on a GPU,
         # which a CUDA graph cannot hold

@@ -34,16 +34,14 @@ class FailAt(BaseCallback):
         return True
 
 
-# The critic options and the actor-deviation penalty, for the checks named "<check>-critic-options"
+# The critic options, for the checks named "<check>-critic-options"
 CRITIC_OPTIONS = dict(critic_layer_norm=True, n_bins=21, actor_q_reduction="mean")
-DEVIATION = dict(actor_deviation_coef=50.0, actor_deviation_threshold=0.0)
 
 
 def small_model(critic_options: bool = False) -> CGAC:
     env = make_vec_env("Pendulum-v1", n_envs=8)
     policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True, **(CRITIC_OPTIONS if critic_options else {}))
-    options = DEVIATION if critic_options else {}
-    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, policy_kwargs=policy_kwargs, seed=0, **options)
+    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, policy_kwargs=policy_kwargs, seed=0)
 
 
 def flat_state(model: CGAC) -> th.Tensor:

@@ -162,8 +162,6 @@ def graphed_and_eager(n_envs: int = 8, env=None, **kwargs) -> tuple[CGAC, CGAC]:
         dict(policy_kwargs=dict(net_arch=[16], optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(foreach=True))),
         # The critic options: LayerNorm, categorical heads, the actor on the critics' mean
         dict(policy_kwargs=dict(net_arch=[16], critic_layer_norm=True, n_bins=21, actor_q_reduction="mean")),
-        # The actor-deviation penalty reads the averaged actor inside the captured actor update
-        dict(policy_kwargs=dict(net_arch=[16]), actor_deviation_coef=50.0, actor_deviation_threshold=0.0),
     ],
 )
 def test_cuda_graphs_match_eager(kwargs):
