@@ -102,6 +102,25 @@ def test_compare_summary_without_reference_run(tmp_path):
     assert "| cgac | 2 | 12 +/- 2 |" in table
 
 
+def test_compare_summary_final_training_return(tmp_path):
+    # The training envs' latest episodes at the last evaluation beside the (noisy) final evaluation; "-" where a
+    # run has no training statistics
+    from sb3_cgac.compare import run_paths, summarise, train_stats_path
+
+    (tmp_path / "runs").mkdir()
+    for run in ("cgac", "ppo"):
+        for seed, returns in enumerate([[0, 5, 10], [0, 20, 15]]):
+            csv_path, done_path, _ = run_paths(tmp_path, run, seed)
+            pd.DataFrame(evaluations(run, seed, returns)).to_csv(csv_path, index=False)
+            done_path.write_text('{"steps": 2000, "seconds": 120.0}')
+    for seed, last in enumerate([100.0, 120.0]):
+        training = pd.DataFrame({"steps": [0, 1000, 2000], "rollout_return": [np.nan, 50.0, last]})
+        training.to_csv(train_stats_path(tmp_path, "cgac", seed), index=False)
+    table = summarise(tmp_path, ["cgac", "ppo"], 2, None)
+    assert "final training return |" in table.splitlines()[2]
+    assert table.splitlines()[4].endswith("| 110 |") and table.splitlines()[5].endswith("| - |")
+
+
 def test_run_names_with_a_dot(tmp_path):
     # A hyperparameter file named after a value (cgac_beta_0.5.yml): every seed keeps files of its own
     from sb3_cgac.compare import run_paths, train_stats_path

@@ -27,7 +27,8 @@ episode statistic of the envpool and gymnasium adapters (their ``episode_info``:
 and its final value to the summary. Beside each pair's evaluations,
 ``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the model's logger at each evaluation
 (CGAC: alpha as ``ent_coef``, ``entropy``, the losses...) and the mean return and length of the training envs' latest
-episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``).
+episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``); the summary adds the last
+``rollout_return`` of each seed (mean over seeds) as the final training return.
 """
 
 import argparse

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_cgac.compare.runs import COLUMNS, run_paths
+from sb3_cgac.compare.runs import COLUMNS, run_paths, train_stats_path
 
 
 def load_results(out: Path, runs: list[str], seeds: int) -> tuple[Any, dict[tuple[str, int], dict[str, float]]]:
@@ -87,6 +87,18 @@ def plot(results: Any, runs: list[str], x_column: str, x_label: str, x_scale: fl
     save_figure(figure, axis, x_label, f"evaluation return ({estimator}, 95% band)", path)
 
 
+def final_training_return(out: Path, run: str, seed: int) -> float:
+    """The mean return of a pair's latest training episodes at its last evaluation (nan where not recorded)."""
+    import pandas as pd
+
+    path = train_stats_path(out, run, seed)
+    if not path.exists():
+        return float("nan")
+    returns = pd.read_csv(path).get("rollout_return")
+    returns = returns.dropna() if returns is not None else []
+    return float(returns.iloc[-1]) if len(returns) else float("nan")
+
+
 def first_reach(frame: Any, threshold: float, column: str) -> float:
     reached = frame[frame["mean_return"] >= threshold]
     return float(reached[column].min()) if len(reached) else float("inf")
@@ -145,6 +157,10 @@ def summarise(
         for key in metric_columns:
             last = results[results["run"] == run].sort_values("steps").groupby("seed")[key].last()
             stats[run][f"metric {key}"] = float(last.mean())
+        # A few deterministic episodes make a noisy final evaluation; the training envs' latest 100 episodes (the
+        # stochastic policy) tell where each seed ended more steadily
+        training = [final_training_return(out, run, int(seed)) for seed in finals[run].index]
+        stats[run]["training"] = float(np.nanmean(training)) if np.isfinite(training).any() else float("nan")
 
     def ratio(run: str, reference: str) -> str:
         if reference not in stats or run == reference:
@@ -158,19 +174,23 @@ def summarise(
 
     shown = [reference for reference in references if reference in stats]
     with_success = "success_rate" in results
+    with_training = any(np.isfinite(s["training"]) for s in stats.values())
+    training_note = " Final training return: mean over seeds of the training envs' latest episodes at the last evaluation."
     lines = [
         f"Threshold: {threshold:.1f} ({threshold_source}). "
         "Time and steps to threshold are medians over seeds of the training wall-clock and env steps at the first "
         "evaluation at or above it (so they are only as fine as the evaluation interval); final and best return: "
         "mean over seeds of the last and best evaluation (+/- std over seeds); worst final: the lowest last evaluation "
-        "of any seed. The evaluation before training counts "
+        "of any seed." + (training_note if with_training else "") + " The evaluation before training counts "
         "in neither the best return nor the threshold. Ratios below 1 mean faster than the reference.",
         "",
         "| run | seeds | final return | worst final | best return | steps/s | time to threshold | steps to threshold |"
         + "".join(f" time vs {reference} |" for reference in shown)
         + (" final success rate |" if with_success else "")
-        + "".join(f" final {key} |" for key in metric_columns),
-        "| --- | --- | --- | --- | --- | --- | --- | --- |" + " --- |" * (len(shown) + with_success + len(metric_columns)),
+        + "".join(f" final {key} |" for key in metric_columns)
+        + (" final training return |" if with_training else ""),
+        "| --- | --- | --- | --- | --- | --- | --- | --- |"
+        + " --- |" * (len(shown) + with_success + len(metric_columns) + with_training),
     ]
     for run, s in stats.items():
         time_text = (
@@ -186,6 +206,7 @@ def summarise(
             + "".join(f" {ratio(run, reference)} |" for reference in shown)
             + (f" {s['success']:.2f} |" if with_success else "")
             + "".join(f" {s[f'metric {key}']:.4g} |" for key in metric_columns)
+            + ((f" {s['training']:.0f} |" if np.isfinite(s["training"]) else " - |") if with_training else "")
         )
     table = "\n".join(lines)
     (out / "summary.md").write_text(table + "\n")
