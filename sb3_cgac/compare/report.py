@@ -94,8 +94,10 @@ def final_training_return(out: Path, run: str, seed: int) -> float:
     path = train_stats_path(out, run, seed)
     if not path.exists():
         return float("nan")
-    returns = pd.read_csv(path).get("rollout_return")
-    returns = returns.dropna() if returns is not None else []
+    stats = pd.read_csv(path)
+    if "rollout_return" not in stats:
+        return float("nan")
+    returns = stats["rollout_return"].dropna()
     return float(returns.iloc[-1]) if len(returns) else float("nan")
 
 
