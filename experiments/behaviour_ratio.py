@@ -41,10 +41,13 @@ class RecordBehaviour(BaseCallback):
         return True
 
     def _on_rollout_end(self) -> None:
-        buffer = self.model.rollout_buffer
+        model = self.model
+        assert isinstance(model, CGAC)
+        buffer = model.rollout_buffer
         slot = (buffer.pos - 1) % buffer.buffer_window
+        assert isinstance(buffer.observations, th.Tensor)  # a Box observation space: the MuJoCo tasks it measures
         obs, actions = buffer.observations[slot].clone(), buffer.actions[slot].clone()
-        self.steps.append((obs, actions, log_prob(self.model.actor_avg, obs, actions)))
+        self.steps.append((obs, actions, log_prob(model.actor_avg, obs, actions)))
 
 
 def main() -> None:

@@ -26,7 +26,7 @@ def main() -> None:
     parser.add_argument("--out", required=True, help="the PNG to write")
     args = parser.parse_args()
     renames = dict(item.split("=", 1) if "=" in item else (item, item) for item in args.runs)
-    frames, taken = [], set()
+    frames, taken = [], set[str]()
     for folder in args.folders:
         frame = pd.read_csv(Path(folder) / "evaluations.csv")
         wanted = set(renames.values()) - taken
