@@ -121,6 +121,26 @@ def test_compare_summary_final_training_return(tmp_path):
     assert table.splitlines()[4].endswith("| 110 |") and table.splitlines()[5].endswith("| - |")
 
 
+def test_compare_summary_keeps_the_folders_other_runs(tmp_path):
+    # Adding a run (or a seed) to a folder, or --summary-only with one run, must not drop the folder's earlier runs
+    # from evaluations.csv and summary.md: they are often the only files kept of a comparison
+    from sb3_cgac.compare import finished_pairs, run_paths, summarise
+
+    (tmp_path / "runs").mkdir()
+    for run, seeds in (("ppo", 3), ("cgac_beta_0.5", 1), ("cgac", 2)):
+        for seed in range(seeds):
+            csv_path, done_path, _ = run_paths(tmp_path, run, seed)
+            pd.DataFrame(evaluations(run, seed, [0, 5, 10 + seed])).to_csv(csv_path, index=False)
+            done_path.write_text('{"steps": 2000, "seconds": 120.0}')
+    run_paths(tmp_path, "sac", 0)[0].write_text("unfinished: no completion record")
+    assert finished_pairs(tmp_path) == [("cgac", 0), ("cgac", 1), ("cgac_beta_0.5", 0), ("ppo", 0), ("ppo", 1), ("ppo", 2)]
+    table = summarise(tmp_path, ["cgac_beta_0.5"], 1, None)
+    rows = [line.split(" | ")[:2] for line in table.splitlines()[4:]]
+    assert rows == [["| cgac_beta_0.5", "1"], ["| cgac", "2"], ["| ppo", "3"]]
+    written = pd.read_csv(tmp_path / "evaluations.csv")
+    assert sorted(set(zip(written["run"], written["seed"], strict=True))) == finished_pairs(tmp_path)
+
+
 def test_run_names_with_a_dot(tmp_path):
     # A hyperparameter file named after a value (cgac_beta_0.5.yml): every seed keeps files of its own
     from sb3_cgac.compare import run_paths, train_stats_path

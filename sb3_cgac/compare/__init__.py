@@ -12,6 +12,7 @@ from sb3_cgac.compare.pairs import run_comparison
 from sb3_cgac.compare.report import load_results, new_axis, plot, save_figure, summarise
 from sb3_cgac.compare.runs import (
     COLUMNS,
+    finished_pairs,
     follow_planned_progress,
     record_train_stats,
     run_paths,
@@ -24,6 +25,7 @@ __all__ = [
     "COLUMNS",
     "build_parser",
     "check_run_files",
+    "finished_pairs",
     "follow_planned_progress",
     "load_results",
     "main",

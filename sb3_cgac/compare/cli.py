@@ -28,7 +28,9 @@ and its final value to the summary. Beside each pair's evaluations,
 ``runs/<run>_seed<seed>_train.csv`` holds the latest ``train/*`` values of the model's logger at each evaluation
 (CGAC: alpha as ``ent_coef``, ``entropy``, the losses...) and the mean return and length of the training envs' latest
 episodes (``rollout_return``, ``rollout_length``; SB3's ``ep_info_buffer``); the summary adds the last
-``rollout_return`` of each seed (mean over seeds) as the final training return.
+``rollout_return`` of each seed (mean over seeds) as the final training return. The outputs cover every finished
+pair in ``--out/runs``, the named runs first: adding a run or a seed to a folder (or ``--summary-only``) keeps its
+earlier runs in ``evaluations.csv`` and ``summary.md``.
 """
 
 import argparse
@@ -80,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--conf-dir", default=None, help="folder of the YAML files (default: this package's hyperparams)")
     parser.add_argument("--out", default=None, help="output folder (default: results/<env>)")
-    parser.add_argument("--summary-only", action="store_true", help="only rebuild the CSV, plots and table")
+    parser.add_argument(
+        "--summary-only", action="store_true", help="only rebuild the CSV, plots and table (every finished pair in --out)"
+    )
     # Internal: one (run, seed) pair
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--run-name", dest="run", help=argparse.SUPPRESS)

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_cgac.compare.runs import COLUMNS, run_paths, train_stats_path
+from sb3_cgac.compare.runs import COLUMNS, finished_pairs, run_paths, train_stats_path
 
 
 def load_results(out: Path, runs: list[str], seeds: int) -> tuple[Any, dict[tuple[str, int], dict[str, float]]]:
@@ -110,11 +110,16 @@ def summarise(
     out: Path, runs: list[str], seeds: int, threshold: float | None, references: tuple[str, ...] = ("ppo", "sac")
 ) -> str:
     """
-    Write evaluations.csv, the two plots and summary.md; return the markdown table.
+    Write evaluations.csv, the two plots and summary.md; return the markdown table. They cover ``runs`` (seeds
+    ``0 .. seeds - 1``) and every other finished pair in ``out/runs``: a comparison that adds a run or a seed to a
+    folder never drops the folder's earlier runs from its outputs.
 
     :param references: Runs whose time to threshold the others are compared with; the threshold defaults to the
         best final return of the first of them
     """
+    found = finished_pairs(out)
+    runs = [*runs, *sorted({run for run, _ in found} - set(runs))]
+    seeds = max([seeds, *(seed + 1 for _, seed in found)])
     results, completed = load_results(out, runs, seeds)
     results.sort_values(["run", "seed", "steps"]).to_csv(out / "evaluations.csv", index=False)
     plot(results, runs, "steps", "env steps", 1.0, out / "return_vs_steps.png")

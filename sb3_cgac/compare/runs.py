@@ -20,6 +20,16 @@ def run_paths(out: Path, run: str, seed: int) -> tuple[Path, Path, Path]:
     return out / "runs" / f"{stem}.csv", out / "runs" / f"{stem}.json", out / "runs" / f"{stem}.log"
 
 
+def finished_pairs(out: Path) -> list[tuple[str, int]]:
+    """Every (run, seed) pair with a completion record in ``out/runs``, whichever comparison trained it."""
+    pairs = []
+    for path in (out / "runs").glob("*_seed*.json"):
+        run, _, seed = path.name[: -len(".json")].rpartition("_seed")
+        if seed.isdigit():
+            pairs.append((run, int(seed)))
+    return sorted(pairs)
+
+
 def train_stats_path(out: Path, run: str, seed: int) -> Path:
     """The training statistics (the logger's ``train/*`` values) at each evaluation of one (run, seed) pair."""
     return out / "runs" / f"{run}_seed{seed}_train.csv"
