@@ -6,6 +6,10 @@ initial policy standard deviation lets the critics see any reward (Go1's per-ste
 
 For each std: actions ``clip(N(0, std), low, high)`` in every env for ``--steps`` steps, then the mean reward per
 step, the fraction of steps with a positive reward, and the number and mean length of the episodes that ended.
+With ``--episodes N`` it runs until N episodes have ended and gives their mean return (standard error) instead, the
+score of a policy that always acts so (std 0: the zero action, a do-nothing policy under delta control)::
+
+    python experiments/action_noise.py --env MuJoCoPlayground/LeapCubeReorient-v1 --stds 0 --episodes 100 --n-envs 50
 """
 
 import argparse
@@ -26,8 +30,12 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=64)
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--stds", type=float, nargs="+", default=[0.0, 0.1, 0.2, 0.37, 0.6, 1.0])
+    parser.add_argument("--episodes", type=int, default=0, help="run until this many episodes ended: their returns")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    if args.episodes:
+        episode_returns(args)
+        return
 
     env = make_vec_env(args.env, n_envs=args.n_envs, backend=args.backend, seed=args.seed, random_first_episode=False)
     low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
@@ -46,6 +54,27 @@ def main() -> None:
         rewards_array = np.asarray(rewards)
         mean_length = f"{np.mean(lengths):.1f}" if lengths else "-"
         print(f"| {std} | {rewards_array.mean():.5f} | {(rewards_array > 0).mean():.3f} | {len(lengths)} | {mean_length} |")
+
+
+def episode_returns(args: argparse.Namespace) -> None:
+    env = make_vec_env(args.env, n_envs=args.n_envs, backend=args.backend, seed=args.seed, random_first_episode=False)
+    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    print("| std | episodes | mean return (standard error) | mean length | shortest |")
+    print("| --- | --- | --- | --- | --- |")
+    for std in args.stds:
+        env.seed(args.seed)
+        env.reset()
+        rng = np.random.default_rng(args.seed)
+        returns, lengths = [], []
+        while len(returns) < args.episodes:
+            actions = np.clip(rng.normal(0.0, std, (args.n_envs, *low.shape)), low, high).astype(np.float32)
+            _, _, dones, infos = env.step(actions)
+            ended = [infos[i]["episode"] for i in np.flatnonzero(dones) if "episode" in infos[i]]
+            returns += [episode["r"] for episode in ended]
+            lengths += [episode["l"] for episode in ended]
+        returns, lengths = returns[: args.episodes], lengths[: args.episodes]
+        error = np.std(returns) / np.sqrt(len(returns))
+        print(f"| {std} | {len(returns)} | {np.mean(returns):.1f} ({error:.1f}) | {np.mean(lengths):.0f} | {np.min(lengths)} |")
 
 
 if __name__ == "__main__":
