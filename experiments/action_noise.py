@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 from sb3_cgac.vec_env import make_vec_env  # noqa: E402
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Go1JoystickFlatTerrain-v1")
     parser.add_argument("--backend", default="envpool")
@@ -32,7 +32,7 @@ def main() -> None:
     parser.add_argument("--stds", type=float, nargs="+", default=[0.0, 0.1, 0.2, 0.37, 0.6, 1.0])
     parser.add_argument("--episodes", type=int, default=0, help="run until this many episodes ended: their returns")
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.episodes:
         episode_returns(args)
         return
@@ -73,8 +73,8 @@ def episode_returns(args: argparse.Namespace) -> None:
             returns += [episode["r"] for episode in ended]
             lengths += [episode["l"] for episode in ended]
         returns, lengths = returns[: args.episodes], lengths[: args.episodes]
-        error = np.std(returns) / np.sqrt(len(returns))
-        print(f"| {std} | {len(returns)} | {np.mean(returns):.1f} ({error:.1f}) | {np.mean(lengths):.0f} | {np.min(lengths)} |")
+        error, shortest = np.std(returns) / np.sqrt(len(returns)), np.min(lengths)
+        print(f"| {std} | {len(returns)} | {np.mean(returns):.1f} ({error:.1f}) | {np.mean(lengths):.0f} | {shortest} |")
 
 
 if __name__ == "__main__":
