@@ -65,7 +65,8 @@ def episode_returns(args: argparse.Namespace) -> None:
         env.seed(args.seed)
         env.reset()
         rng = np.random.default_rng(args.seed)
-        returns, lengths = [], []
+        returns: list[float] = []
+        lengths: list[int] = []
         while len(returns) < args.episodes:
             actions = np.clip(rng.normal(0.0, std, (args.n_envs, *low.shape)), low, high).astype(np.float32)
             _, _, dones, infos = env.step(actions)
