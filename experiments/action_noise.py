@@ -13,6 +13,9 @@ score of a policy that always acts so (std 0: the zero action, a do-nothing poli
 """
 
 import argparse
+from collections.abc import Iterator
+from itertools import islice
+from typing import Any
 
 from sb3_cgac.threads import configure_thread_spin
 
@@ -21,6 +24,18 @@ configure_thread_spin()
 import numpy as np  # noqa: E402
 
 from sb3_cgac.vec_env import make_vec_env  # noqa: E402
+
+
+def noisy_steps(env: Any, std: float, seed: int) -> Iterator[tuple[np.ndarray, list[dict]]]:
+    """From a reset with ``seed``, step every env with ``clip(N(0, std))`` actions: each step's rewards and ended episodes."""
+    low, high = env.action_space.low, env.action_space.high
+    env.seed(seed)
+    env.reset()
+    rng = np.random.default_rng(seed)
+    while True:
+        actions = np.clip(rng.normal(0.0, std, (env.num_envs, *low.shape)), low, high).astype(np.float32)
+        _, reward, dones, infos = env.step(actions)
+        yield reward, [infos[i]["episode"] for i in np.flatnonzero(dones) if "episode" in infos[i]]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -33,49 +48,32 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=0, help="run until this many episodes ended: their returns")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    if args.episodes:
-        episode_returns(args)
-        return
 
     env = make_vec_env(args.env, n_envs=args.n_envs, backend=args.backend, seed=args.seed, random_first_episode=False)
-    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
-    print("| std | reward per step | steps with reward > 0 | episodes ended | their mean length |")
+    if args.episodes:
+        print("| std | episodes | mean return (standard error) | mean length | shortest |")
+    else:
+        print("| std | reward per step | steps with reward > 0 | episodes ended | their mean length |")
     print("| --- | --- | --- | --- | --- |")
     for std in args.stds:
-        env.seed(args.seed)
-        env.reset()
-        rng = np.random.default_rng(args.seed)
+        steps = noisy_steps(env, std, args.seed)
+        if args.episodes:
+            ended: list[dict] = []
+            while len(ended) < args.episodes:
+                ended += next(steps)[1]
+            returns, lengths = [e["r"] for e in ended[: args.episodes]], [e["l"] for e in ended[: args.episodes]]
+            error = np.std(returns) / np.sqrt(len(returns))
+            print(
+                f"| {std} | {len(returns)} | {np.mean(returns):.1f} ({error:.1f}) | {np.mean(lengths):.0f} | {min(lengths)} |"
+            )
+            continue
         rewards, lengths = [], []
-        for _ in range(args.steps):
-            actions = np.clip(rng.normal(0.0, std, (args.n_envs, *low.shape)), low, high).astype(np.float32)
-            _, reward, dones, infos = env.step(actions)
+        for reward, episodes in islice(steps, args.steps):
             rewards.append(reward)
-            lengths += [infos[i]["episode"]["l"] for i in np.flatnonzero(dones) if "episode" in infos[i]]
+            lengths += [episode["l"] for episode in episodes]
         rewards_array = np.asarray(rewards)
         mean_length = f"{np.mean(lengths):.1f}" if lengths else "-"
         print(f"| {std} | {rewards_array.mean():.5f} | {(rewards_array > 0).mean():.3f} | {len(lengths)} | {mean_length} |")
-
-
-def episode_returns(args: argparse.Namespace) -> None:
-    env = make_vec_env(args.env, n_envs=args.n_envs, backend=args.backend, seed=args.seed, random_first_episode=False)
-    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
-    print("| std | episodes | mean return (standard error) | mean length | shortest |")
-    print("| --- | --- | --- | --- | --- |")
-    for std in args.stds:
-        env.seed(args.seed)
-        env.reset()
-        rng = np.random.default_rng(args.seed)
-        returns: list[float] = []
-        lengths: list[int] = []
-        while len(returns) < args.episodes:
-            actions = np.clip(rng.normal(0.0, std, (args.n_envs, *low.shape)), low, high).astype(np.float32)
-            _, _, dones, infos = env.step(actions)
-            ended = [infos[i]["episode"] for i in np.flatnonzero(dones) if "episode" in infos[i]]
-            returns += [episode["r"] for episode in ended]
-            lengths += [episode["l"] for episode in ended]
-        returns, lengths = returns[: args.episodes], lengths[: args.episodes]
-        error, shortest = np.std(returns) / np.sqrt(len(returns)), np.min(lengths)
-        print(f"| {std} | {len(returns)} | {np.mean(returns):.1f} ({error:.1f}) | {np.mean(lengths):.0f} | {shortest} |")
 
 
 if __name__ == "__main__":
