@@ -183,16 +183,16 @@ def test_every_yaml_entry_builds(tmp_path, name, env_id):
 
 
 # What the CGAC entries resolve to on a CPU: the update settings of their 0.1.0 spelling (batch, critic updates per
-# step, tau, policy_tau; the Pendulum-v1 entry's batch was 2,048 in 0.1.0) and their learning rate at the start and
-# after the decay
+# step, tau, policy_tau; the Pendulum-v1 entry's batch was 2,048 in 0.1.0), their window and Q-GAE lambda, and their
+# learning rate at the start and after the decay
 ENTRY_SETTINGS = {
-    "Pendulum-v1": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
-    "HalfCheetah-v5": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
-    "Hopper-v5": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
-    "Walker2d-v5": ((512, 4, 0.02, 0.05), 2e-3, 2e-3),
-    "Ant-v5": ((512, 2, 0.02, 1.0), 2e-3, 1e-4),
-    "Humanoid-v5": ((512, 2, 0.02, 1.0), 2e-3, 4e-4),
-    "AdroitHandPen-v1": ((512, 2, 0.05, 1.0), 1e-3, 2e-4),
+    "Pendulum-v1": ((512, 4, 0.02, 0.05), (32, 0.95), 2e-3, 2e-3),
+    "HalfCheetah-v5": ((512, 4, 0.02, 0.05), (32, 0.95), 2e-3, 2e-3),
+    "Hopper-v5": ((512, 4, 0.02, 0.05), (32, 0.95), 2e-3, 2e-3),
+    "Walker2d-v5": ((512, 4, 0.02, 0.05), (32, 0.95), 2e-3, 2e-3),
+    "Ant-v5": ((512, 2, 0.02, 1.0), (256, 0.5), 2e-3, 1e-4),
+    "Humanoid-v5": ((512, 2, 0.02, 1.0), (32, 0.95), 2e-3, 4e-4),
+    "AdroitHandPen-v1": ((512, 2, 0.05, 1.0), (32, 0.95), 1e-3, 2e-4),
 }
 
 
@@ -200,8 +200,9 @@ ENTRY_SETTINGS = {
 def test_cgac_entries_resolve_to_their_settings(tmp_path, env_id):
     backend = entry_backend(env_id)
     model, _ = build_model("cgac", env_id, backend=backend, log_folder=str(tmp_path), device="cpu")
-    (expected, start, end) = ENTRY_SETTINGS[env_id]
+    (expected, window, start, end) = ENTRY_SETTINGS[env_id]
     assert (model.batch_size, model.critic_updates_per_step, model.tau, model.policy_tau) == expected
+    assert (model.buffer_window, model.gae_lambda) == window
     assert model.lr_schedule(1.0) == pytest.approx(start) and model.lr_schedule(0.0) == pytest.approx(end)
     model.get_env().close()
 
