@@ -7,10 +7,11 @@ e.g. the LeapCube table and figures of docs/results.md ("What 10 evaluation epis
         docs/results/LeapCubeReorient-v1-{entry,cheap,deviation,predict}-wallclock
 
 A folder's training returns are the ``rollout_return`` column (the mean return of the training envs' latest 100
-episodes at each evaluation) of its ``runs/<run>_seed<k>_train.csv``, or of its ``training_returns.csv`` where the
-per-run files are not kept; ``--write`` collects the former into the latter. For every (run, seed) it prints the last
-evaluation and the last training return, each with its ratio to its own best of the last ``--last`` evaluations, then
-the mean and std of (evaluation - training return) over those evaluations: CGAC's runs together, the others per run.
+episodes at each evaluation) of its finished runs' ``runs/<run>_seed<k>_train.csv``, or of its
+``training_returns.csv`` where the per-run files are not kept; ``--write`` collects the former into the latter. For
+every (run, seed) it prints the last evaluation and the last training return, each with its ratio to its own best of
+the last ``--last`` evaluations, then the mean and std of (evaluation - training return) over those evaluations:
+CGAC's runs together, the others per run.
 """
 
 import argparse
@@ -19,19 +20,23 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sb3_cgac.compare.runs import finished_pairs, train_stats_path
+
 TRAINING_COLUMNS = ["run", "seed", "steps", "seconds", "rollout_return", "rollout_length"]
 
 
 def training_returns(folder: Path) -> pd.DataFrame:
-    """The training returns of every (run, seed) of a compare folder, from its per-run files or its collected CSV."""
-    files = sorted((folder / "runs").glob("*_seed*_train.csv"))
-    if not files:
+    """
+    The training returns of every finished (run, seed) of a compare folder, from its per-run files or its collected
+    CSV. A run still training (no completion record) is left out, as compare leaves it out of ``evaluations.csv``.
+    """
+    paths = {(run, seed): train_stats_path(folder, run, seed) for run, seed in finished_pairs(folder)}
+    paths = {pair: path for pair, path in paths.items() if path.exists()}
+    if not paths:
         return pd.read_csv(folder / "training_returns.csv")
-    frames = []
-    for path in files:
-        run, seed = path.name[: -len("_train.csv")].rsplit("_seed", 1)
-        frame = pd.read_csv(path).assign(run=run, seed=int(seed))
-        frames.append(frame.reindex(columns=TRAINING_COLUMNS))
+    frames = [
+        pd.read_csv(path).assign(run=run, seed=seed).reindex(columns=TRAINING_COLUMNS) for (run, seed), path in paths.items()
+    ]
     return pd.concat(frames, ignore_index=True)
 
 

@@ -15,6 +15,8 @@ def write_folder(folder, evaluations: list[float], training: list[float]) -> Non
     pd.DataFrame(dict(steps=steps, seconds=steps, rollout_return=[None, *training[1:]])).to_csv(
         folder / "runs" / "cgac_seed0_train.csv", index=False
     )
+    # The completion record compare writes when the run ends
+    (folder / "runs" / "cgac_seed0.json").write_text('{"steps": 4000, "seconds": 4000}')
 
 
 def test_evaluation_noise_table_and_differences(tmp_path, capsys):
@@ -34,3 +36,14 @@ def test_evaluation_noise_table_and_differences(tmp_path, capsys):
 def test_evaluation_noise_last_is_checked(tmp_path):
     with pytest.raises(ValueError, match="--last"):
         main([str(tmp_path), "--last", "0"])
+
+
+def test_evaluation_noise_leaves_out_unfinished_runs(tmp_path, capsys):
+    write_folder(tmp_path / "a", [0, 50, 120, 80, 100], [0, 60, 100, 100, 90])
+    # A run still training: its statistics so far, no completion record
+    pd.DataFrame(dict(steps=[0, 1000], seconds=[0, 1000], rollout_return=[None, 5.0])).to_csv(
+        tmp_path / "a" / "runs" / "cgac_window_seed0_train.csv", index=False
+    )
+    main([str(tmp_path / "a"), "--write"])
+    written = pd.read_csv(tmp_path / "a" / "training_returns.csv")
+    assert set(written["run"]) == {"cgac"} and len(written) == 5
