@@ -2,7 +2,7 @@
 # The GPU-simulator benchmark, one command for one H100/H200 (at most about 8 minutes): MuJoCo Playground on MJX through
 # sb3_cgac's torch-native path, raw simulator steps/s, CGAC's end-to-end steps/s at 1,024, 4,096 and 16,384 envs (CUDA
 # graphs of its updates; eager beside them at 4,096), 3 minutes of learning of CGAC and of rsl_rl's PPO, and CGAC with
-# the LeapCube entry's critics at 4,096 envs and the paper's batch (benchmarks/gpu_playground.py). The table,
+# the LeapCube entry's critics and window at 4,096 envs and the paper's batch (benchmarks/gpu_playground.py). The table,
 # OUT_DIR/table.md, is rewritten after each measurement, the 4,096-env ones first: a run cut short keeps them, and a
 # measurement that fails is listed there.
 # Run on a GPU machine with the tests extra and jax[cuda] installed: bash benchmarks/gpu.sh OUT_DIR. A machine without a
