@@ -255,7 +255,7 @@ def test_gpu_benchmark_counts_host_syncs(monkeypatch):
 
 
 def test_gpu_benchmark_reports_the_entry_critics_beside_the_default(monkeypatch):
-    # The LeapCube entry's critics are timed at --learn-envs and reported as a ratio to the default critics' rate there
+    # The LeapCube entry's critics and window are timed at --learn-envs and reported as a ratio to the defaults' rate there
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     import gpu_playground
 
@@ -265,4 +265,4 @@ def test_gpu_benchmark_reports_the_entry_critics_beside_the_default(monkeypatch)
     results.update({key: {} for key in ("raw", "cgac", "cgac_eager", "split", "learning")})
     results["cgac"][8], results["cgac_critic"] = 1000.0, {8: 400.0}
     table = gpu_playground.table(results, args)
-    assert "at 8 envs, CUDA graphs of the updates: 400 steps/s (0.40x the default critics')." in table
+    assert "window (256 steps, lambda 0.5) at 8 envs, CUDA graphs of the updates: 400 steps/s (0.40x the defaults')." in table
