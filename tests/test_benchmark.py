@@ -266,3 +266,10 @@ def test_gpu_benchmark_reports_the_entry_critics_beside_the_default(monkeypatch)
     results["cgac"][8], results["cgac_critic"] = 1000.0, {8: 400.0}
     table = gpu_playground.table(results, args)
     assert "window (256 steps, lambda 0.5) at 8 envs, CUDA graphs of the updates: 400 steps/s (0.40x the defaults')." in table
+    # ... and that row's model is built with them
+    built: dict = {}
+    stub_env = SimpleNamespace(observation_space=gpu_playground.spaces.Box(-1.0, 1.0, (3,)))
+    monkeypatch.setattr(gpu_playground, "playground", lambda args, n_envs, seed: stub_env)
+    monkeypatch.setattr(gpu_playground, "CGAC", lambda policy, env, **kwargs: built.update(kwargs))
+    gpu_playground.build("cgac", 8, SimpleNamespace(device="cpu"), critic_options=True)
+    assert (built["buffer_window"], built["gae_lambda"], built["policy_kwargs"]["n_bins"]) == (256, 0.5, 101)
