@@ -18,6 +18,8 @@ from sb3_cgac.hyperparameters import (
     check_action_space,
     check_batch_fits,
     check_hyperparameters,
+    episode_horizon,
+    horizon_gamma,
     parse_ent_coef,
     resolve_auto_hyperparameters,
     resolve_update_precision,
@@ -25,6 +27,7 @@ from sb3_cgac.hyperparameters import (
 )
 from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
+from sb3_cgac.return_scale import ReturnScale
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
@@ -55,7 +58,8 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param critic_updates_per_step: Critic updates per collected step (``"auto"``: 4 on a CPU; on a GPU 4 below
         1024 envs, from there on enough that each transition is sampled 8 times, at least the paper's 2)
     :param policy_delay: One actor and alpha update every ``policy_delay`` critic updates (paper: 2)
-    :param gamma: Discount factor
+    :param gamma: Discount factor, or ``"auto"``: from the episodes' time limit ``T`` (the env's
+        ``max_episode_steps``), ``(T/5 - 1) / (T/5)`` within [0.95, 0.995] (TD-MPC2's rule); 0.99 without one
     :param gae_lambda: lambda of the Q-GAE targets
     :param gae_horizon: Maximum number of reward terms in a Q-GAE target (None: the whole window; paper: 8 for
         SNU humanoid and AllegroHand)
@@ -70,6 +74,9 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param ent_coef_monotone: Clamp of the learned alpha (Sec. 4.2): ``"above_target"`` keeps it from rising while
         the entropy is at or above its target; ``True`` is the paper's ``alpha = min(alpha_prev, alpha_new)``;
         ``False`` leaves it free (SAC)
+    :param scale_rewards: Divide the rewards the critics learn from by ``max(std(G), max|G| / 5)`` of the envs'
+        running discounted returns ``G`` (SimbaV2's scaling), so that their targets sit in a fixed range whatever the
+        reward scale; the statistics are saved with the model, and the callbacks and logs see the env's rewards
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
@@ -111,7 +118,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         batch_size: int | str = "auto",
         critic_updates_per_step: int | str = "auto",
         policy_delay: int = 2,
-        gamma: float = 0.99,
+        gamma: float | str = 0.99,
         gae_lambda: float = 0.95,
         gae_horizon: int | None = None,
         tau: float | str = "auto",
@@ -120,6 +127,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
+        scale_rewards: bool = False,
         max_grad_norm: float = 20.0,
         update_precision: str = "float32",
         cuda_graphs: bool = False,
@@ -138,7 +146,7 @@ class CGAC(WindowOnPolicyAlgorithm):
             env,
             learning_rate=learning_rate,
             n_steps=n_steps,
-            gamma=gamma,
+            gamma=gamma,  # type: ignore[arg-type]  # "auto" is resolved by _setup_model
             gae_lambda=gae_lambda,
             ent_coef=0.0,  # replaced below: CGAC's alpha may be a string
             vf_coef=0.0,
@@ -162,6 +170,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.predict_tau = predict_tau
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
+        self.scale_rewards = scale_rewards
         self.update_precision = update_precision
         self.cuda_graphs = cuda_graphs
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
@@ -216,6 +225,10 @@ class CGAC(WindowOnPolicyAlgorithm):
             device=self.device,
         )
         self.batch_size, self.critic_updates_per_step, self.tau, self.policy_tau = cost
+        if self.gamma == "auto":  # a loaded model keeps the discount it was trained with
+            self.gamma = horizon_gamma(episode_horizon(self.env))
+        if self.scale_rewards:  # a loaded model keeps its statistics
+            self.return_scale = (self.return_scale or ReturnScale(self.gamma)).to(self.device)
 
         buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
         self.rollout_buffer = buffer_class(
@@ -356,6 +369,8 @@ class CGAC(WindowOnPolicyAlgorithm):
         # One read from the device per iteration (no host sync inside the update loop): finiteness and statistics
         finite = self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef]))
         scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": th.exp(self.actor.log_std.detach()).mean()}
+        if self.return_scale is not None:
+            scalars["reward_scale"] = self.return_scale.scale()
         stats = read_statistics(scalars, statistics)
         check_finite_parameters(bool(stats.pop("finite")), self._n_updates)
         stats.update(target_entropy=target_entropy, beta=self.target_entropy_beta, tau=self.tau, policy_tau=self.policy_tau)

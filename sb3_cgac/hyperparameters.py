@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecEnv
 
 # The paper's minibatch size
 PAPER_BATCH_SIZE = 4096
@@ -39,6 +40,10 @@ FEW_ENVS = 16
 ENT_COEF_CLAMPS = (True, False, "above_target")
 # Precision of the networks in the updates ("auto": see ``resolve_update_precision``)
 UPDATE_PRECISIONS = ("auto", "float32", "bfloat16")
+# gamma="auto": the discount from the episodes' time limit (TD-MPC2's rule), within this range; without a time limit
+# the paper's 0.99
+HORIZON_GAMMA_RANGE = (0.95, 0.995)
+DEFAULT_GAMMA = 0.99
 
 
 def positive_int(name: str, value: Any) -> None:
@@ -76,7 +81,7 @@ def check_hyperparameters(
     gae_horizon: int | None,
     predict_tau: float | None,
     predict_actor: bool | None,
-    gamma: float,
+    gamma: float | str,
     gae_lambda: float,
     max_grad_norm: float | None,
     ent_coef: str | float,
@@ -112,7 +117,9 @@ def check_hyperparameters(
             "of the actor that predict() acts with is averaged at the rate predict_tau. Remove predict_actor from "
             "policy_kwargs and set predict_tau (None: predict() acts with the averaged actor)."
         )
-    if not 0.0 <= gamma <= 1.0 or not 0.0 <= gae_lambda <= 1.0:
+    if isinstance(gamma, str) and gamma != "auto":
+        raise ValueError(f"CGAC: gamma must be a number in [0, 1] or 'auto' (from the episodes' time limit), got {gamma!r}.")
+    if not 0.0 <= (DEFAULT_GAMMA if gamma == "auto" else gamma) <= 1.0 or not 0.0 <= gae_lambda <= 1.0:  # type: ignore[operator]
         raise ValueError(f"CGAC: gamma and gae_lambda must be in [0, 1], got {gamma} and {gae_lambda}.")
     if max_grad_norm is not None and max_grad_norm <= 0:
         raise ValueError(f"CGAC: max_grad_norm must be > 0, got {max_grad_norm}.")
@@ -127,6 +134,41 @@ def check_hyperparameters(
     check_choice("update_precision", update_precision, UPDATE_PRECISIONS)
     if not isinstance(cuda_graphs, bool):
         raise ValueError(f"CGAC: cuda_graphs must be True or False, got {cuda_graphs!r}.")
+
+
+def episode_horizon(env: VecEnv | None) -> int | None:
+    """
+    :param env: A vector env (SB3's, or one of ``sb3_cgac.vec_env``'s adapters, possibly wrapped)
+    :return: The time limit of its episodes: the adapters' ``max_episode_steps()``, else the spec of its first env;
+        None when it has none
+    """
+    if env is None:
+        return None
+    limit = getattr(env, "max_episode_steps", None)  # the adapters (VecEnvWrapper forwards the lookup)
+    if callable(limit):
+        try:
+            limit = limit()
+        except ValueError:  # the adapters raise when the spec has no time limit
+            limit = None
+    if limit is None:
+        try:
+            spec = env.get_attr("spec", [0])[0]
+        except (AttributeError, IndexError):
+            spec = None
+        limit = getattr(spec, "max_episode_steps", None)
+    return int(limit) if limit else None
+
+
+def horizon_gamma(horizon: int | None) -> float:
+    """
+    The discount from the episode length ``T`` as TD-MPC2 sets it for all its tasks: ``(T/5 - 1) / (T/5)`` clipped to
+    [0.95, 0.995], i.e. an effective horizon of a fifth of the episode (0.975 for 200 steps, 0.995 from 1,000);
+    ``DEFAULT_GAMMA`` when the episodes have no time limit.
+    """
+    if horizon is None:
+        return DEFAULT_GAMMA
+    effective = horizon / 5
+    return float(min(max((effective - 1) / effective, HORIZON_GAMMA_RANGE[0]), HORIZON_GAMMA_RANGE[1]))
 
 
 def parse_ent_coef(ent_coef: str | float) -> tuple[bool, float]:

@@ -18,6 +18,7 @@ from sb3_cgac.collection import EnvStep, tensor_env_step, tensor_observations, v
 from sb3_cgac.distributed import DataParallel
 from sb3_cgac.hyperparameters import FEW_ENVS
 from sb3_cgac.policies import CGACPolicy
+from sb3_cgac.return_scale import ReturnScale
 from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
 
 SelfWindowAlgorithm = TypeVar("SelfWindowAlgorithm", bound="WindowOnPolicyAlgorithm")
@@ -60,6 +61,8 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
     _warned_synchronised_resets = False
     # Data-parallel training (sb3_cgac.distributed), started by learn() under torchrun
     _parallel: DataParallel | None = None
+    # The scaling of the rewards the window stores (None: as the env gives them)
+    return_scale: ReturnScale | None = None
 
     def _start_rollout(self, buffer: CGACRolloutBuffer, tensor_env: TorchVecEnv | None) -> None:
         # The window's trajectories end where `_last_obs` does not continue them (first call, env reset,
@@ -70,6 +73,8 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
             obs, ok = vec_env_observations(self._last_obs, self.device)  # type: ignore[arg-type]
         buffer.reset()
         buffer.set_current_obs(obs, ok)
+        if self.return_scale is not None:  # the envs' running returns restart with the window
+            self.return_scale.reset_returns()
         self.policy.update_obs_normalizer(obs, ok, self._parallel.sum if self._parallel else None)
         with th.inference_mode():
             self._pending_actions = self.policy.actor_avg.sample(obs, 1)[0]
@@ -126,6 +131,8 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
                 next_step_actions = self.policy.actor_avg.sample(step.observations, 1)[0]
                 next_actions = self.policy.actor_avg.sample(step.bootstrap_observations(), 1)[0]
 
+            if self.return_scale is not None:  # the window's rewards only: the callbacks' locals keep the env's
+                step = step._replace(rewards=self.return_scale.scale_rewards(step.rewards, step.dones))
             rollout_buffer.add(actions, step, next_actions)
             self._last_obs = self._rollout_obs = new_obs
             self._pending_actions = next_step_actions

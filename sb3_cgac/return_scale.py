@@ -1,0 +1,82 @@
+"""
+Reward scaling by the spread of the discounted returns (SimbaV2, Lee et al., 2025): each reward is divided by
+``max(std(G), max|G| / RETURN_LIMIT)``, where ``G`` is each env's running discounted return, so that the critics'
+targets sit in a fixed range whatever the task's reward scale, and a sparse reward that fires for the first time
+cannot blow them up. Statistics stay on the device: no host sync per step.
+"""
+
+import torch as th
+
+# Scaled discounted returns stay within about +/- this (SimbaV2's G_max)
+RETURN_LIMIT = 5.0
+# Floor of the scale, so that an all-zero reward stream leaves rewards unchanged rather than dividing by zero
+SCALE_EPS = 1e-4
+
+
+class ReturnScale:
+    """
+    Running statistics of every env's discounted return ``G_t = gamma * G_{t-1} + r_t`` (reset at episode ends) over
+    all envs and steps seen: count, mean and sum of squared deviations (Chan et al.'s parallel update) and the largest
+    ``|G|``. ``scale_rewards`` updates them with a step's rewards, then divides the rewards by the scale.
+
+    :param gamma: Discount factor of the returns (the algorithm's)
+    :param device: Device of the statistics (the rewards')
+    """
+
+    def __init__(self, gamma: float, device: th.device | str = "cpu"):
+        self.gamma = gamma
+        self.device = th.device(device)
+        # float64: the count reaches the hundreds of millions, and float32 means would stop moving
+        self.count = th.zeros((), dtype=th.float64, device=self.device)
+        self.mean = th.zeros((), dtype=th.float64, device=self.device)
+        self.m2 = th.zeros((), dtype=th.float64, device=self.device)
+        self.max_abs = th.zeros((), dtype=th.float64, device=self.device)
+        self.returns: th.Tensor | None = None  # each env's running return; reset with the envs
+
+    def to(self, device: th.device | str) -> "ReturnScale":
+        """Move the statistics to ``device`` (a model loaded on another device)."""
+        self.device = th.device(device)
+        for name in ("count", "mean", "m2", "max_abs"):
+            setattr(self, name, getattr(self, name).to(self.device))
+        self.returns = None
+        return self
+
+    def reset_returns(self) -> None:
+        """Forget the envs' running returns (new envs, or envs reset outside an episode end)."""
+        self.returns = None
+
+    def scale(self) -> th.Tensor:
+        """:return: The current divisor of the rewards, a float32 scalar on the device"""
+        variance = self.m2 / self.count.clamp_min(1.0)
+        return th.maximum(variance.sqrt(), self.max_abs / RETURN_LIMIT).clamp_min(SCALE_EPS).float()
+
+    def scale_rewards(self, rewards: th.Tensor, dones: th.Tensor) -> th.Tensor:
+        """
+        Update the statistics with one step of every env, then scale its rewards.
+
+        :param rewards: Rewards of the step, shape (n_envs,); non-finite ones are left out of the statistics (the window
+            excludes them) and returned as they are
+        :param dones: Whether each env's episode ended at this step (its return restarts at the next one)
+        :return: The rewards divided by the scale
+        """
+        finite = th.isfinite(rewards)
+        rewards64 = th.where(finite, rewards, 0.0).double()
+        if self.returns is None or self.returns.shape != rewards.shape:
+            self.returns = th.zeros_like(rewards64)
+        returns = self.gamma * self.returns + rewards64
+        batch_count = float(returns.numel())
+        batch_mean = returns.mean()
+        delta = batch_mean - self.mean
+        total = self.count + batch_count
+        self.mean = self.mean + delta * batch_count / total
+        self.m2 = self.m2 + ((returns - batch_mean) ** 2).sum() + delta**2 * self.count * batch_count / total
+        self.count = total
+        self.max_abs = th.maximum(self.max_abs, returns.abs().max())
+        self.returns = th.where(dones.to(returns.device), 0.0, returns)
+        return th.where(finite, rewards / self.scale(), rewards)
+
+    def __getstate__(self) -> dict:
+        # Saved with the model: the statistics, not the envs' running returns
+        state = self.__dict__.copy()
+        state["returns"] = None
+        return state
