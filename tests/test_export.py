@@ -1,6 +1,10 @@
-"""The exported actor (ONNX through onnxruntime, TorchScript) gives the actions of predict(deterministic=True)."""
+"""
+The exported actor (ONNX through onnxruntime, torch.export's .pt2, TorchScript) gives the actions of
+predict(deterministic=True).
+"""
 
 import pickle
+import warnings
 
 import numpy as np
 import pytest
@@ -50,9 +54,31 @@ def test_onnx_matches_predict_box(tmp_path, predict_tau):
     assert actions.shape == (N_OBS, 1)
     np.testing.assert_allclose(actions, expected, atol=1e-5, rtol=0)
     assert np.abs(expected).max() > 0.1, "the check needs actions away from zero"
-    # TorchScript gives the same
+    # torch.export's program and TorchScript give the same
+    program = th.export.load(str(export_policy(model, tmp_path / "policy.pt2", vec_normalize=env))).module()
+    np.testing.assert_allclose(program(th.as_tensor(obs)).numpy(), expected, atol=1e-5, rtol=0)
     scripted = th.jit.load(str(export_policy(model, tmp_path / "policy.pt", vec_normalize=env)))
     np.testing.assert_allclose(scripted(th.as_tensor(obs)).numpy(), expected, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("suffix", [".onnx", ".pt2", ".pt"])
+def test_export_prints_no_deprecation_warning(tmp_path, suffix):
+    model = trained("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=8, seed=0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        export_policy(model, tmp_path / f"policy{suffix}")
+    deprecations = [str(item.message) for item in caught if issubclass(item.category, DeprecationWarning | FutureWarning)]
+    assert not deprecations, deprecations
+
+
+def test_pt2_matches_predict_dict(tmp_path):
+    env = VecNormalize(make_vec_env(DictObsEnv, n_envs=8, seed=0), norm_reward=False)
+    model = trained("MultiInputPolicy", env, policy_kwargs=dict(normalize_observations=True))
+    obs = raw_observations(env)
+    expected, _ = model.predict(env.normalize_obs(obs), deterministic=True)
+    program = th.export.load(str(export_policy(model, tmp_path / "policy.pt2", vec_normalize=env))).module()
+    actions = program(*(th.as_tensor(obs[key]) for key in ("position", "velocity"))).numpy()
+    np.testing.assert_allclose(actions, expected, atol=1e-5, rtol=0)
 
 
 def test_onnx_matches_predict_dict(tmp_path):
@@ -80,6 +106,9 @@ def test_export_cli(tmp_path, capsys):
     obs = raw_observations(env)
     expected, _ = model.predict(env.normalize_obs(obs), deterministic=True)
     np.testing.assert_allclose(onnx_actions(tmp_path / "out.onnx", obs), expected, atol=1e-5, rtol=0)
+    main([model_path, "--output", str(tmp_path / "out.pt2"), "--vec-normalize", statistics])
+    program = th.export.load(str(tmp_path / "out.pt2")).module()
+    np.testing.assert_allclose(program(th.as_tensor(obs)).numpy(), expected, atol=1e-5, rtol=0)
     # Something that is not VecNormalize statistics is refused with a message
     with open(tmp_path / "other.pkl", "wb") as file_handler:
         pickle.dump({"not": "statistics"}, file_handler)

@@ -1,6 +1,6 @@
 """
-Export the deterministic actor of a trained CGAC model for deployment, as ONNX (extra ``export``: onnx, onnxruntime)
-or TorchScript: observation normalisation (``VecNormalize`` statistics and the policy's own) and the scaling of
+Export the deterministic actor of a trained CGAC model for deployment, as ONNX (extra ``export``: onnx, onnxruntime),
+a ``torch.export`` program (``.pt2``) or TorchScript: observation normalisation (``VecNormalize`` statistics and the policy's own) and the scaling of
 actions to the action space's bounds are baked in, so that the exported module maps raw observations to the actions
 that ``model.predict(obs, deterministic=True)`` returns::
 

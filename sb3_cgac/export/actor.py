@@ -1,10 +1,11 @@
 """
 The deterministic actor of a CGAC model as a standalone module (normalisation and action scaling inside), written
-as ONNX or TorchScript.
+as ONNX, a ``torch.export`` program (``.pt2``) or TorchScript.
 """
 
 import copy
 import importlib.util
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +15,9 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
-EXPORT_FORMATS = ("onnx", "torchscript")
+EXPORT_FORMATS = ("onnx", "pt2", "torchscript")
+# The format of a file suffix (any other suffix: TorchScript)
+SUFFIX_FORMATS = {".onnx": "onnx", ".pt2": "pt2"}
 
 
 class DeterministicActor(nn.Module):
@@ -95,42 +98,60 @@ def export_policy(
     opset_version: int = 18,
 ) -> Path:
     """
-    Write the deterministic actor of ``model`` (see :class:`DeterministicActor`) to ``path``. ONNX files come from
-    torch's current exporter (``torch.onnx.export(..., dynamo=True)``, which needs ``onnxscript``: extra ``export``),
-    with a dynamic batch dimension.
+    Write the deterministic actor of ``model`` (see :class:`DeterministicActor`) to ``path``, with a dynamic batch
+    dimension: ONNX from torch's current exporter (``torch.onnx.export(..., dynamo=True)``, which needs ``onnxscript``:
+    extra ``export``); ``pt2``, a ``torch.export`` program (``torch.export.load(path).module()`` runs it, without this
+    package); TorchScript (``torch.jit.load``), for the robot stacks that load it (Isaac Lab's, rsl_rl's exported
+    policies), traced under a filter of the deprecation warning of ``torch.jit.trace`` in torch >= 2.10.
 
     :param model: A trained ``CGAC`` model
-    :param path: Output file (``.onnx`` for ONNX, ``.pt`` for TorchScript unless ``export_format`` says)
+    :param path: Output file (``.onnx``: ONNX, ``.pt2``: torch.export, else TorchScript unless ``export_format`` says)
     :param vec_normalize: The ``VecNormalize`` the model was trained with, if any (its observation statistics)
-    :param export_format: ``"onnx"`` or ``"torchscript"`` (default: from the file's suffix, ONNX for ``.onnx``)
+    :param export_format: ``"onnx"``, ``"pt2"`` or ``"torchscript"`` (default: from the file's suffix)
     :param opset_version: ONNX opset (at least 18, the exporter's)
     :return: The path written
     """
     path = Path(path)
-    export_format = export_format or ("onnx" if path.suffix == ".onnx" else "torchscript")
+    export_format = export_format or SUFFIX_FORMATS.get(path.suffix, "torchscript")
     if export_format not in EXPORT_FORMATS:
         raise ValueError(f"Unknown export format {export_format!r}; choose one of {EXPORT_FORMATS}.")
     module = DeterministicActor(model, vec_normalize).eval()
     if export_format == "torchscript":
-        th.jit.trace(module, module.example_inputs()).save(str(path))
+        with warnings.catch_warnings():
+            # TorchScript stays for the deployment stacks that load it; torch.export (format "pt2") is its successor
+            warnings.filterwarnings("ignore", message=r"`torch\.jit\.trace", category=DeprecationWarning)
+            th.jit.trace(module, module.example_inputs()).save(str(path))
         return path
-    if importlib.util.find_spec("onnxscript") is None:
-        raise ImportError("ONNX export needs onnxscript (torch's ONNX exporter uses it): pip install 'sb3_cgac[export]'.")
     # A batch of 2 in the example: torch.export specialises a dimension of size 1 to a constant
     inputs = module.example_inputs(batch_size=2)
     batch = th.export.Dim("batch")
     names = module.input_names()
+    # forward(*observations): one structure holding a shape per observation
+    dynamic_shapes = (tuple({0: batch} for _ in names),)
+    if export_format == "onnx" and importlib.util.find_spec("onnxscript") is None:
+        raise ImportError("ONNX export needs onnxscript (torch's ONNX exporter uses it): pip install 'sb3_cgac[export]'.")
+    with warnings.catch_warnings():
+        # torch.export's own use of a pytree API that torch 2.13 deprecated: nothing a user of this function can change
+        warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated", category=FutureWarning)
+        if export_format == "pt2":
+            th.export.save(th.export.export(module, inputs, dynamic_shapes=dynamic_shapes), str(path))
+        else:
+            _export_onnx(module, inputs, path, names, dynamic_shapes, opset_version)
+    return path
+
+
+def _export_onnx(
+    module: DeterministicActor, inputs: tuple[th.Tensor, ...], path: Path, names: list[str], dynamic_shapes: Any, opset: int
+) -> None:
     th.onnx.export(
         module,
         inputs,
         str(path),
         input_names=names,
         output_names=["actions"],
-        # forward(*observations): one structure holding a shape per observation
-        dynamic_shapes=(tuple({0: batch} for _ in names),),
-        opset_version=opset_version,
+        dynamic_shapes=dynamic_shapes,
+        opset_version=opset,
         dynamo=True,
         external_data=False,
         verbose=False,
     )
-    return path

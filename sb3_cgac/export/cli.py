@@ -10,17 +10,21 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_cgac.export.actor import EXPORT_FORMATS, export_policy
 
 DESCRIPTION = (
-    "Export the deterministic actor of a trained CGAC model for deployment, as ONNX (extra export: onnx, onnxruntime) "
-    "or TorchScript, with observation normalisation (VecNormalize statistics and the policy's own) and the scaling of "
-    "actions to the action space's bounds baked in: the exported module maps raw observations to the actions that "
-    "model.predict(obs, deterministic=True) returns."
+    "Export the deterministic actor of a trained CGAC model for deployment, as ONNX (extra export: onnx, onnxruntime), "
+    "a torch.export program (.pt2: torch.export.load(path).module() runs it, without this package) or TorchScript "
+    "(kept for the robot stacks that load it, such as Isaac Lab's and rsl_rl's exported policies; torch 2.10 "
+    "deprecated torch.jit.trace, and pt2 is its successor), with observation normalisation (VecNormalize statistics "
+    "and the policy's own) and the scaling of actions to the action space's bounds baked in: the exported module maps "
+    "raw observations to the actions that model.predict(obs, deterministic=True) returns."
 )
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m sb3_cgac.export", description=DESCRIPTION)
     parser.add_argument("model", help="a saved CGAC model (.zip)")
-    parser.add_argument("--output", required=True, help="the file to write (.onnx: ONNX, else TorchScript)")
+    parser.add_argument(
+        "--output", required=True, help="the file to write (.onnx: ONNX, .pt2: torch.export, else TorchScript)"
+    )
     parser.add_argument("--vec-normalize", help="the VecNormalize statistics the model was trained with (.pkl)")
     parser.add_argument("--format", choices=EXPORT_FORMATS, help="default: from the output's suffix")
     args = parser.parse_args(argv)
