@@ -1,8 +1,8 @@
 """
 Export the deterministic actor of a trained CGAC model for deployment, as ONNX (extra ``export``: onnx, onnxruntime),
-a ``torch.export`` program (``.pt2``) or TorchScript: observation normalisation (``VecNormalize`` statistics and the policy's own) and the scaling of
-actions to the action space's bounds are baked in, so that the exported module maps raw observations to the actions
-that ``model.predict(obs, deterministic=True)`` returns::
+a ``torch.export`` program (``.pt2``) or TorchScript: observation normalisation (``VecNormalize`` statistics and the
+policy's own) and the scaling of actions to the action space's bounds are baked in, so that the exported module maps
+raw observations to the actions that ``model.predict(obs, deterministic=True)`` returns::
 
     python -m sb3_cgac.export logs/cgac/Go1JoystickFlatTerrain-v1_1/best_model.zip --output go1.onnx \\
         --vec-normalize logs/cgac/Go1JoystickFlatTerrain-v1_1/Go1JoystickFlatTerrain-v1/vecnormalize.pkl
