@@ -1,5 +1,5 @@
 """
-Data-parallel CGAC on one machine: N ranks of one thread each (``torchrun``, ``sb3_cgac.distributed``) against one
+Data-parallel CGAC on one machine: N ranks of one thread each (``torchrun``, ``sb3_cgac.common.distributed``) against one
 process with N threads, on the same zoo entry and wall-clock budget, measured side by side in one run.
 
     python benchmarks/data_parallel.py --seeds 3 --minutes 10 --out docs/results/data-parallel-HalfCheetah-v5

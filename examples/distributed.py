@@ -17,7 +17,7 @@ from sb3_cgac.threads import configure_thread_spin
 configure_thread_spin()  # before anything imports torch (envpool's threads)
 
 from sb3_cgac import CGAC  # noqa: E402
-from sb3_cgac.distributed import init_from_env, leave  # noqa: E402
+from sb3_cgac.common.distributed import init_from_env, leave  # noqa: E402
 from sb3_cgac.vec_env import make_vec_env  # noqa: E402
 
 

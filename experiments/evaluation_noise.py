@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sb3_cgac.compare.runs import finished_pairs, train_stats_path
+from sb3_cgac.compare.files import finished_pairs, train_stats_path
 
 TRAINING_COLUMNS = ["run", "seed", "steps", "seconds", "rollout_return", "rollout_length"]
 

@@ -10,7 +10,7 @@ from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.utils import get_device
 
 from sb3_cgac.collection import EnvStep
-from sb3_cgac.obs_rows import TensorObs, rows, where_rows
+from sb3_cgac.common.obs_rows import TensorObs, rows, where_rows
 
 # Q-function used for the targets: (observations, actions) -> values of shape (batch,)
 QFunction = Callable[[TensorObs, th.Tensor], th.Tensor]

@@ -9,10 +9,10 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples
-from sb3_cgac.compat import upgrade_saved_attributes
-from sb3_cgac.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
-from sb3_cgac.diagnostics import check_finite_parameters, read_statistics, total_grad_norm
-from sb3_cgac.distributed import RANK_SEED_STRIDE, start_data_parallel, world
+from sb3_cgac.common.compat import upgrade_saved_attributes
+from sb3_cgac.common.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
+from sb3_cgac.common.diagnostics import check_finite_parameters, read_statistics, total_grad_norm
+from sb3_cgac.common.distributed import RANK_SEED_STRIDE, start_data_parallel, world
 from sb3_cgac.hyperparameters import (
     UpdateCost,
     check_action_space,
@@ -406,7 +406,7 @@ class CGAC(WindowOnPolicyAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         # Aliases into the policy (saved with it), state rebuilt by _setup_model, and an attribute of sb3_cgac 0.1.0
-        # files (sb3_cgac.compat)
+        # files (sb3_cgac.common.compat)
         excluded = ["actor", "actor_avg", "critic", "critic_target", "_autocast_dtype", "_update_graphs"]
         excluded += ["_critic_parameters", "_actor_parameters", "gradient_ratio_average", "_requested_update_cost"]
         return [*super()._excluded_save_params(), *excluded]

@@ -11,7 +11,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.utils import obs_as_tensor
 
-from sb3_cgac.obs_rows import ArrayObs, TensorObs, set_rows, where_rows
+from sb3_cgac.common.obs_rows import ArrayObs, TensorObs, set_rows, where_rows
 
 if TYPE_CHECKING:
     from sb3_cgac.vec_env.torch_vec_env import TensorStep

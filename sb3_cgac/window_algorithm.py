@@ -15,11 +15,12 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_cgac.buffers import CGACRolloutBuffer
 from sb3_cgac.collection import EnvStep, tensor_env_step, tensor_observations, vec_env_observations, vec_env_step
-from sb3_cgac.distributed import DataParallel
+from sb3_cgac.common.distributed import DataParallel
 from sb3_cgac.hyperparameters import FEW_ENVS
 from sb3_cgac.policies import CGACPolicy
 from sb3_cgac.return_scale import ReturnScale
-from sb3_cgac.vec_env import TorchVecEnv, episode_metrics
+from sb3_cgac.vec_env.episodes import episode_metrics
+from sb3_cgac.vec_env.torch_vec_env import TorchVecEnv
 
 SelfWindowAlgorithm = TypeVar("SelfWindowAlgorithm", bound="WindowOnPolicyAlgorithm")
 
@@ -38,7 +39,7 @@ def warn_synchronised_resets(infos: list[dict[str, Any]], n_envs: int) -> bool:
         "CGAC: all envs reached their time limit at the same step, so for the next steps the window holds "
         "only initial states and the critic forgets the rest (paper Sec. 4.2). Spread the resets: build the "
         "envs with sb3_cgac.vec_env.make_vec_env (it cuts first episodes at random lengths by default), or "
-        "pass wrapper_class=sb3_cgac.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
+        "pass wrapper_class=sb3_cgac.vec_env.wrappers.RandomFirstEpisodeLength to SB3's make_vec_env.",
         UserWarning,
         stacklevel=3,
     )
@@ -59,7 +60,7 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
     _pending_actions: th.Tensor | None = None
     _rollout_obs: Any = None
     _warned_synchronised_resets = False
-    # Data-parallel training (sb3_cgac.distributed), started by learn() under torchrun
+    # Data-parallel training (sb3_cgac.common.distributed), started by learn() under torchrun
     _parallel: DataParallel | None = None
     # The scaling of the rewards the window stores (None: as the env gives them)
     return_scale: ReturnScale | None = None

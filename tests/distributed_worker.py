@@ -17,7 +17,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_cgac import CGAC
 from sb3_cgac.buffers import CGACSamples
-from sb3_cgac.distributed import DataParallel, init_from_env, leave
+from sb3_cgac.common.distributed import DataParallel, init_from_env, leave
 from sb3_cgac.losses import critic_loss
 
 

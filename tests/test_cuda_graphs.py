@@ -16,7 +16,7 @@ from test_run import DictObsEnv  # tests/ is on sys.path under pytest
 
 from sb3_cgac import CGAC
 from sb3_cgac.buffers import CGACSamples
-from sb3_cgac.cuda_graphs import (
+from sb3_cgac.common.cuda_graphs import (
     GraphedStep,
     prepare_optimizers_for_capture,
     release_optimizers_from_capture,

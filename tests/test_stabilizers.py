@@ -9,7 +9,7 @@ from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_cgac import CGAC
 from sb3_cgac.policies import CGACPolicy, RunningObsNormalizer
-from sb3_cgac.wrappers import RandomFirstEpisodeLength
+from sb3_cgac.vec_env.wrappers import RandomFirstEpisodeLength
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 

@@ -258,12 +258,12 @@ def test_compare_script_tiny_budget(tmp_path):
 
 def fake_launches(monkeypatch, scripts):
     """compare's launch replaced by shell scripts, one per (run, seed), which may write the pair's "done" file."""
-    from sb3_cgac.compare import pairs, runs
+    from sb3_cgac.compare import files, pairs
 
     launched = []
 
     def launch(args, run, seed, spec):
-        _, done_path, log_path = runs.run_paths(pathlib.Path(args.out), run, seed)
+        _, done_path, log_path = files.run_paths(pathlib.Path(args.out), run, seed)
         command = ["bash", "-c", scripts[run].format(done=done_path)]
         with log_path.open("w") as log:
             launched.append(subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT))

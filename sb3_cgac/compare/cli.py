@@ -78,7 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--nproc-per-run",
         type=int,
         default=1,
-        help="ranks of data-parallel CGAC per run, started by torchrun (sb3_cgac.distributed); each has --threads threads",
+        help="ranks of data-parallel CGAC per run, started by torchrun (sb3_cgac.common.distributed), each with --threads "
+        "threads",
     )
     parser.add_argument("--conf-dir", default=None, help="folder of the YAML files (default: this package's hyperparams)")
     parser.add_argument("--out", default=None, help="output folder (default: results/<env>)")

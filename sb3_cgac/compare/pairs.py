@@ -9,8 +9,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sb3_cgac.compare.files import run_paths
 from sb3_cgac.compare.report import summarise
-from sb3_cgac.compare.runs import run_paths
 
 
 def launch(args: argparse.Namespace, run: str, seed: int, spec: dict[str, Any]) -> subprocess.Popen:

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_cgac.compare.runs import COLUMNS, finished_pairs, run_paths, train_stats_path
+from sb3_cgac.compare.files import COLUMNS, finished_pairs, run_paths, train_stats_path
 
 
 def load_results(out: Path, runs: list[str], seeds: int) -> tuple[Any, dict[tuple[str, int], dict[str, float]]]:
@@ -106,81 +106,86 @@ def first_reach(frame: Any, threshold: float, column: str) -> float:
     return float(reached[column].min()) if len(reached) else float("inf")
 
 
-def summarise(
-    out: Path, runs: list[str], seeds: int, threshold: float | None, references: tuple[str, ...] = ("ppo", "sac")
+def choose_threshold(finals: dict[str, Any], threshold: float | None, references: tuple[str, ...]) -> tuple[float, str]:
+    """
+    :param finals: Each run's final returns by seed
+    :return: The threshold (given, else the best final return of the first reference run, else of any run) and what
+        it was taken from
+    """
+    if threshold is not None:
+        return threshold, "given"
+    # A partial comparison (e.g. `--runs cgac` first) has no reference run yet: take the best final of all runs
+    with_results = [run for run, values in finals.items() if len(values) > 0]  # load_results found at least one
+    if references[0] in with_results:
+        source, sources = f"best of {references[0]}'s final returns", [references[0]]
+    else:
+        source, sources = f"best final return of any run; no {references[0]} run yet", with_results
+    return float(max(finals[run].max() for run in sources)), source
+
+
+def run_statistics(
+    out: Path, results: Any, run: str, done: list[dict[str, float]], threshold: float, metric_columns: list[str]
+) -> dict[str, float]:
+    """
+    The summary's numbers for one run: finals, bests, steps/s, time and steps to the threshold, the last success rate
+    and ``--metrics`` values, and the final training return (means over seeds where not said otherwise).
+
+    :param results: Every pair's evaluations (``evaluations.csv``)
+    :param done: The completion records of the run's finished seeds
+    """
+    mine = results[results["run"] == run]
+    last = mine.sort_values("steps").groupby("seed")
+    finals = last["mean_return"].last()
+    # The evaluation before training is left out: an untrained policy can score well (a motionless Ant
+    # collects its healthy reward for 1000 steps) and would count as reaching the threshold at 0 s
+    frames = [frame[frame["steps"] > 0] for _, frame in mine.groupby("seed")]
+    times = [first_reach(frame, threshold, "seconds") for frame in frames]
+    steps = [first_reach(frame, threshold, "steps") for frame in frames]
+    stats = {
+        "seeds": len(frames),
+        "final": float(finals.mean()),
+        "final_std": float(finals.std(ddof=0)),
+        "worst": float(finals.min()),
+        "best": float(np.mean([frame["mean_return"].max() for frame in frames])),
+        "sps": float(np.mean([d["steps"] / d["seconds"] for d in done])),
+        "reached": int(np.isfinite(times).sum()),
+        # Median over seeds, a seed that never reaches the threshold counting as infinitely slow
+        "time": float(np.median(times)),
+        "steps": float(np.median(steps)),
+    }
+    if "success_rate" in results:  # runs evaluated without --success-key have no rate
+        stats["success"] = float(last["success_rate"].last().mean())
+    for key in metric_columns:
+        stats[f"metric {key}"] = float(last[key].last().mean())
+    # A few deterministic episodes make a noisy final evaluation; the training envs' latest 100 episodes (the
+    # stochastic policy) tell where each seed ended more steadily
+    training = [final_training_return(out, run, int(seed)) for seed in finals.index]
+    stats["training"] = float(np.nanmean(training)) if np.isfinite(training).any() else float("nan")
+    return stats
+
+
+def time_ratio(stats: dict[str, dict[str, float]], run: str, reference: str) -> str:
+    """The run's time to the threshold over the reference's, as the table shows it."""
+    if reference not in stats or run == reference:
+        return "-"
+    mine, theirs = stats[run]["time"], stats[reference]["time"]
+    if not np.isfinite(mine):
+        return "never"
+    if not np.isfinite(theirs):
+        return "< 1 (ref. never)"
+    return f"{mine / theirs:.2f}x" if theirs > 0 else "-"
+
+
+def summary_table(
+    stats: dict[str, dict[str, float]],
+    threshold: float,
+    threshold_source: str,
+    references: tuple[str, ...],
+    with_success: bool,
+    metric_columns: list[str],
 ) -> str:
-    """
-    Write evaluations.csv, the two plots and summary.md; return the markdown table. They cover ``runs`` (seeds
-    ``0 .. seeds - 1``) and every other finished pair in ``out/runs``: a comparison that adds a run or a seed to a
-    folder never drops the folder's earlier runs from its outputs.
-
-    :param references: Runs whose time to threshold the others are compared with; the threshold defaults to the
-        best final return of the first of them
-    """
-    found = finished_pairs(out)
-    runs = [*runs, *sorted({run for run, _ in found} - set(runs))]
-    seeds = max([seeds, *(seed + 1 for _, seed in found)])
-    results, completed = load_results(out, runs, seeds)
-    results.sort_values(["run", "seed", "steps"]).to_csv(out / "evaluations.csv", index=False)
-    plot(results, runs, "steps", "env steps", 1.0, out / "return_vs_steps.png")
-    plot(results, runs, "seconds", "training wall-clock (minutes)", 1 / 60, out / "return_vs_time.png")
-
-    finals = {run: results[results["run"] == run].sort_values("steps").groupby("seed")["mean_return"].last() for run in runs}
-    threshold_source = "given"
-    if threshold is None:
-        # A partial comparison (e.g. `--runs cgac` first) has no reference run yet: take the best final of all runs
-        with_results = [run for run in runs if len(finals[run]) > 0]  # load_results found at least one
-        if references[0] in with_results:
-            threshold_source, sources = f"best of {references[0]}'s final returns", [references[0]]
-        else:
-            threshold_source, sources = f"best final return of any run; no {references[0]} run yet", with_results
-        threshold = float(max(finals[run].max() for run in sources))
-    stats: dict[str, dict[str, float]] = {}
-    # The --metrics columns: every column after the fixed ones
-    metric_columns = [column for column in results.columns if column not in (*COLUMNS, "success_rate")]
-    for run in runs:
-        # The evaluation before training is left out: an untrained policy can score well (a motionless Ant
-        # collects its healthy reward for 1000 steps) and would count as reaching the threshold at 0 s
-        frames = [frame[frame["steps"] > 0] for _, frame in results[results["run"] == run].groupby("seed")]
-        times = [first_reach(frame, threshold, "seconds") for frame in frames]
-        steps = [first_reach(frame, threshold, "steps") for frame in frames]
-        done = [completed[(run, seed)] for seed in range(seeds) if (run, seed) in completed]
-        stats[run] = {
-            "seeds": len(frames),
-            "final": float(finals[run].mean()),
-            "final_std": float(finals[run].std(ddof=0)),
-            "worst": float(finals[run].min()),
-            "best": float(np.mean([frame["mean_return"].max() for frame in frames])),
-            "sps": float(np.mean([d["steps"] / d["seconds"] for d in done])),
-            "reached": int(np.isfinite(times).sum()),
-            # Median over seeds, a seed that never reaches the threshold counting as infinitely slow
-            "time": float(np.median(times)),
-            "steps": float(np.median(steps)),
-        }
-        if "success_rate" in results:
-            # Runs evaluated without --success-key have no rate
-            last = results[results["run"] == run].sort_values("steps").groupby("seed")["success_rate"].last()
-            stats[run]["success"] = float(last.mean())
-        for key in metric_columns:
-            last = results[results["run"] == run].sort_values("steps").groupby("seed")[key].last()
-            stats[run][f"metric {key}"] = float(last.mean())
-        # A few deterministic episodes make a noisy final evaluation; the training envs' latest 100 episodes (the
-        # stochastic policy) tell where each seed ended more steadily
-        training = [final_training_return(out, run, int(seed)) for seed in finals[run].index]
-        stats[run]["training"] = float(np.nanmean(training)) if np.isfinite(training).any() else float("nan")
-
-    def ratio(run: str, reference: str) -> str:
-        if reference not in stats or run == reference:
-            return "-"
-        mine, theirs = stats[run]["time"], stats[reference]["time"]
-        if not np.isfinite(mine):
-            return "never"
-        if not np.isfinite(theirs):
-            return "< 1 (ref. never)"
-        return f"{mine / theirs:.2f}x" if theirs > 0 else "-"
-
+    """summary.md: the note on how the columns are computed, and one row per run."""
     shown = [reference for reference in references if reference in stats]
-    with_success = "success_rate" in results
     with_training = any(np.isfinite(s["training"]) for s in stats.values())
     training_note = " Final training return: mean over seeds of the training envs' latest episodes at the last evaluation."
     lines = [
@@ -210,12 +215,42 @@ def summarise(
             f"| {run} | {s['seeds']} | {s['final']:.0f} +/- {s['final_std']:.0f} | {s['worst']:.0f} | {s['best']:.0f} "
             f"| {s['sps']:,.0f} "
             f"| {time_text} ({s['reached']}/{s['seeds']} seeds) | {steps_text} |"
-            + "".join(f" {ratio(run, reference)} |" for reference in shown)
+            + "".join(f" {time_ratio(stats, run, reference)} |" for reference in shown)
             + (f" {s['success']:.2f} |" if with_success else "")
             + "".join(f" {s[f'metric {key}']:.4g} |" for key in metric_columns)
             + ((f" {s['training']:.0f} |" if np.isfinite(s["training"]) else " - |") if with_training else "")
         )
-    table = "\n".join(lines)
+    return "\n".join(lines)
+
+
+def summarise(
+    out: Path, runs: list[str], seeds: int, threshold: float | None, references: tuple[str, ...] = ("ppo", "sac")
+) -> str:
+    """
+    Write evaluations.csv, the two plots and summary.md; return the markdown table. They cover ``runs`` (seeds
+    ``0 .. seeds - 1``) and every other finished pair in ``out/runs``: a comparison that adds a run or a seed to a
+    folder never drops the folder's earlier runs from its outputs.
+
+    :param references: Runs whose time to threshold the others are compared with; the threshold defaults to the
+        best final return of the first of them
+    """
+    found = finished_pairs(out)
+    runs = [*runs, *sorted({run for run, _ in found} - set(runs))]
+    seeds = max([seeds, *(seed + 1 for _, seed in found)])
+    results, completed = load_results(out, runs, seeds)
+    results.sort_values(["run", "seed", "steps"]).to_csv(out / "evaluations.csv", index=False)
+    plot(results, runs, "steps", "env steps", 1.0, out / "return_vs_steps.png")
+    plot(results, runs, "seconds", "training wall-clock (minutes)", 1 / 60, out / "return_vs_time.png")
+
+    finals = {run: results[results["run"] == run].sort_values("steps").groupby("seed")["mean_return"].last() for run in runs}
+    threshold, threshold_source = choose_threshold(finals, threshold, references)
+    # The --metrics columns: every column after the fixed ones
+    metric_columns = [column for column in results.columns if column not in (*COLUMNS, "success_rate")]
+    stats = {}
+    for run in runs:
+        done = [completed[(run, seed)] for seed in range(seeds) if (run, seed) in completed]
+        stats[run] = run_statistics(out, results, run, done, threshold, metric_columns)
+    table = summary_table(stats, threshold, threshold_source, references, "success_rate" in results, metric_columns)
     (out / "summary.md").write_text(table + "\n")
     print(table)
     return table

@@ -10,7 +10,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_cgac.obs_rows import per_env_numbers, rows, set_rows
+from sb3_cgac.common.obs_rows import per_env_numbers, rows, set_rows
 
 BatchObs = np.ndarray | dict[str, np.ndarray]
 
@@ -53,7 +53,7 @@ class GymnasiumVecEnv(VecEnv):
         envs). ``is_success`` is always copied for finished episodes.
     :param random_first_episode: Cut the first episode of every env after a random number of steps, drawn uniformly
         from ``1..max_episode_steps``, as a time-limit truncation, so that the envs do not all reset at the same
-        steps (see ``sb3_cgac.wrappers.RandomFirstEpisodeLength``, the same for single envs)
+        steps (see ``sb3_cgac.vec_env.wrappers.RandomFirstEpisodeLength``, the same for single envs)
     :param episode_info: Per-env info entries summarised over each episode into ``infos[i]["episode"]`` beside
         ``r`` and ``l``, as ``{key: "sum" | "mean" | "max" | "last"}`` (reward components, task metrics); CGAC logs
         their means as ``rollout/ep_<key>_mean``. ``"auto"``: see ``auto_episode_info``, decided at the first step

@@ -2,7 +2,7 @@
 mjlab's tasks (package ``mjlab``, MuJoCo Warp; extra ``mjlab``) as a torch-native vector env: observations, rewards
 and flags stay torch tensors on the simulator's device, so that on a GPU the whole collection step stays there.
 
-    from sb3_cgac.vec_env import TorchVecEnv
+    from sb3_cgac.vec_env.torch_vec_env import TorchVecEnv
     from sb3_cgac.vec_env.mjlab_vec_env import MjlabVectorEnv
 
     env = TorchVecEnv(MjlabVectorEnv("Mjlab-Velocity-Flat-Unitree-Go1", num_envs=4096, device="cuda:0"),
@@ -26,7 +26,7 @@ import torch as th
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from sb3_cgac.obs_rows import where_rows
+from sb3_cgac.common.obs_rows import where_rows
 
 try:
     import mjlab.tasks  # noqa: F401  (registers mjlab's tasks)

@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_cgac.obs_rows import TensorObs, per_env_numbers, where_rows
+from sb3_cgac.common.obs_rows import TensorObs, per_env_numbers, where_rows
 
 
 class TensorStep(NamedTuple):

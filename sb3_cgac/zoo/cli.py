@@ -9,7 +9,7 @@ from typing import NoReturn
 import gymnasium as gym
 import yaml
 
-from sb3_cgac.distributed import init_from_env, leave, world
+from sb3_cgac.common.distributed import init_from_env, leave, world
 from sb3_cgac.vec_env import register_backend_task
 
 # manager imports rl_zoo3 first, with the install hint where the extra is missing
@@ -89,7 +89,7 @@ def train(argv: list[str] | None = None) -> None:
     """
     register()
     argv = list(sys.argv[1:] if argv is None else argv)
-    rank, _ = init_from_env()  # under torchrun: data-parallel training (sb3_cgac.distributed)
+    rank, _ = init_from_env()  # under torchrun: data-parallel training (sb3_cgac.common.distributed)
     if rank != 0:
         argv = _quiet_rank_argv(argv)
     if "-h" in argv or "--help" in argv:

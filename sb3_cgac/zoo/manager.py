@@ -19,9 +19,9 @@ from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_cgac import CGAC
-from sb3_cgac.distributed import world
+from sb3_cgac.common.distributed import world
 from sb3_cgac.vec_env import BACKENDS, make_vec_env, register_backend_task, register_optional_envs
-from sb3_cgac.wrappers import RandomFirstEpisodeLength
+from sb3_cgac.vec_env.wrappers import RandomFirstEpisodeLength
 
 try:
     import rl_zoo3.enjoy

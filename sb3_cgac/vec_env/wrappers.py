@@ -70,7 +70,7 @@ class VecObservationKeys(VecEnvWrapper):
     """
     Keep some keys of a Dict observation, in the observations and in ``infos[i]["terminal_observation"]``: an
     algorithm without per-key inputs (SB3's PPO, SAC) then reads only what a robot senses, e.g. ``keys=["state"]``
-    of the MuJoCo Playground tasks. In rl-zoo YAML: ``vec_env_wrapper: [{sb3_cgac.wrappers.VecObservationKeys:
+    of the MuJoCo Playground tasks. In rl-zoo YAML: ``vec_env_wrapper: [{sb3_cgac.vec_env.wrappers.VecObservationKeys:
     {keys: [state]}}]``.
 
     :param venv: The vector env, with a Dict observation space
