@@ -14,6 +14,7 @@ from sb3_cgac.common.cuda_graphs import UpdateGraphs, plain_optimizer_states, se
 from sb3_cgac.common.diagnostics import check_finite_parameters, read_statistics, total_grad_norm
 from sb3_cgac.common.distributed import RANK_SEED_STRIDE, start_data_parallel, world
 from sb3_cgac.hyperparameters import (
+    CHECKED_ARGUMENTS,
     UpdateCost,
     check_action_space,
     check_batch_fits,
@@ -141,6 +142,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
+        arguments = dict(locals())  # the constructor's arguments, checked once the base class has set the policy's
         super().__init__(
             policy,  # type: ignore[arg-type]
             env,
@@ -178,25 +180,8 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Optimizer | None = None
 
-        check_hyperparameters(
-            n_steps=n_steps,
-            buffer_window=buffer_window,
-            policy_delay=policy_delay,
-            batch_size=batch_size,
-            critic_updates_per_step=critic_updates_per_step,
-            tau=tau,
-            policy_tau=policy_tau,
-            gae_horizon=gae_horizon,
-            predict_tau=predict_tau,
-            predict_actor=self.policy_kwargs.get("predict_actor"),
-            gamma=gamma,
-            gae_lambda=gae_lambda,
-            max_grad_norm=max_grad_norm,
-            ent_coef=ent_coef,
-            ent_coef_monotone=ent_coef_monotone,
-            update_precision=update_precision,
-            cuda_graphs=cuda_graphs,
-        )
+        predict_actor = self.policy_kwargs.get("predict_actor")
+        check_hyperparameters(**{name: arguments[name] for name in CHECKED_ARGUMENTS}, predict_actor=predict_actor)
         if _init_setup_model:
             self._setup_model()
             check_batch_fits(self.batch_size, self.buffer_window, self.n_envs)

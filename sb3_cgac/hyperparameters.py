@@ -8,6 +8,7 @@ batch of 4096 costs about what one of 512 does, so the defaults are the paper's 
 Polyak rates adapted to the number of envs.
 """
 
+import inspect
 import math
 import warnings
 from typing import Any, NamedTuple
@@ -169,6 +170,10 @@ def horizon_gamma(horizon: int | None) -> float:
         return DEFAULT_GAMMA
     effective = horizon / 5
     return float(min(max((effective - 1) / effective, HORIZON_GAMMA_RANGE[0]), HORIZON_GAMMA_RANGE[1]))
+
+
+# The constructor arguments of CGAC that check_hyperparameters takes (by name)
+CHECKED_ARGUMENTS = tuple(name for name in inspect.signature(check_hyperparameters).parameters if name != "predict_actor")
 
 
 def parse_ent_coef(ent_coef: str | float) -> tuple[bool, float]:

@@ -164,6 +164,43 @@ class Actor(BasePolicy):
         return self(observation, deterministic)
 
 
+def check_policy_arguments(
+    action_space: spaces.Space, mean_init_scale: float, n_bins: int | None, n_critics: int, actor_q_reduction: str
+) -> None:
+    """Check the arguments of ``CGACPolicy`` that build its networks (see there); each error names the fix."""
+    if not isinstance(action_space, spaces.Box):
+        raise ValueError(
+            f"CGACPolicy needs a continuous (gymnasium.spaces.Box) action space, got {action_space}: CGAC "
+            "follows the gradient of Q through the action (paper Eq. 7)."
+        )
+    if not (math.isfinite(mean_init_scale) and mean_init_scale >= 0):
+        raise ValueError(
+            f"CGACPolicy: mean_init_scale must be a finite number >= 0 (a factor on the actor's initial mean layer, "
+            f"1 for the unscaled init, 0.01 for near-zero initial actions), got {mean_init_scale}."
+        )
+    if n_bins is not None and (isinstance(n_bins, bool) or not isinstance(n_bins, int) or n_bins < 2):
+        raise ValueError(
+            f"CGACPolicy: n_bins must be None (one Q-value per critic) or an integer >= 2 (bins of a categorical "
+            f"critic, e.g. 101), got {n_bins!r}."
+        )
+    if isinstance(n_critics, bool) or not isinstance(n_critics, int) or n_critics < 1:
+        raise ValueError(
+            f"CGACPolicy: n_critics must be an integer >= 1 (the paper's twin critics: 2; one critic: no minimum in the "
+            f"targets), got {n_critics!r}."
+        )
+    if actor_q_reduction not in ("min", "mean"):
+        raise ValueError(f"CGACPolicy: actor_q_reduction must be 'min' or 'mean', got {actor_q_reduction!r}.")
+
+
+def make_obs_normalizer(observation_space: spaces.Space) -> ObsNormalizer:
+    """The in-policy observation normaliser of a Box or Dict observation space (``normalize_observations``)."""
+    if isinstance(observation_space, spaces.Dict):
+        return DictObsNormalizer(observation_space)
+    if isinstance(observation_space, spaces.Box):
+        return RunningObsNormalizer(observation_space.shape)
+    raise ValueError(f"CGACPolicy: normalize_observations needs a Box or Dict observation space, got {observation_space}.")
+
+
 class CGACPolicy(BasePolicy):
     """
     Policy class for CGAC: an actor and twin Q critics that are trained, plus a Polyak-averaged copy of
@@ -250,28 +287,7 @@ class CGACPolicy(BasePolicy):
             normalize_images=normalize_images,
             squash_output=True,
         )
-        if not isinstance(self.action_space, spaces.Box):
-            raise ValueError(
-                f"CGACPolicy needs a continuous (gymnasium.spaces.Box) action space, got {self.action_space}: CGAC "
-                "follows the gradient of Q through the action (paper Eq. 7)."
-            )
-        if not (math.isfinite(mean_init_scale) and mean_init_scale >= 0):
-            raise ValueError(
-                f"CGACPolicy: mean_init_scale must be a finite number >= 0 (a factor on the actor's initial mean layer, "
-                f"1 for the unscaled init, 0.01 for near-zero initial actions), got {mean_init_scale}."
-            )
-        if n_bins is not None and (isinstance(n_bins, bool) or not isinstance(n_bins, int) or n_bins < 2):
-            raise ValueError(
-                f"CGACPolicy: n_bins must be None (one Q-value per critic) or an integer >= 2 (bins of a categorical "
-                f"critic, e.g. 101), got {n_bins!r}."
-            )
-        if isinstance(n_critics, bool) or not isinstance(n_critics, int) or n_critics < 1:
-            raise ValueError(
-                f"CGACPolicy: n_critics must be an integer >= 1 (the paper's twin critics: 2; one critic: no minimum in the "
-                f"targets), got {n_critics!r}."
-            )
-        if actor_q_reduction not in ("min", "mean"):
-            raise ValueError(f"CGACPolicy: actor_q_reduction must be 'min' or 'mean', got {actor_q_reduction!r}.")
+        check_policy_arguments(self.action_space, mean_init_scale, n_bins, n_critics, actor_q_reduction)
         self.actor_q_reduction = actor_q_reduction
         if net_arch is None:
             net_arch = list(DEFAULT_NET_ARCH)
@@ -289,16 +305,7 @@ class CGACPolicy(BasePolicy):
                 "CGACPolicy: share_features_extractor=True needs the actor and the critics to read the same keys, got "
                 f"actor_keys={actor_keys} and critic_keys={critic_keys}; set share_features_extractor=False."
             )
-        self.obs_normalizer: ObsNormalizer | None = None
-        if normalize_observations:
-            if isinstance(self.observation_space, spaces.Dict):
-                self.obs_normalizer = DictObsNormalizer(self.observation_space)
-            elif isinstance(self.observation_space, spaces.Box):
-                self.obs_normalizer = RunningObsNormalizer(self.observation_space.shape)
-            else:
-                raise ValueError(
-                    f"CGACPolicy: normalize_observations needs a Box or Dict observation space, got {self.observation_space}."
-                )
+        self.obs_normalizer = make_obs_normalizer(self.observation_space) if normalize_observations else None
         net_args = {
             "observation_space": self.observation_space,
             "action_space": self.action_space,

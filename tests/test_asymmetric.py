@@ -1,44 +1,16 @@
 """The asymmetric actor-critic: the actor reads some keys of a Dict observation, the critics others (privileged)."""
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
+from toy_envs import PrivilegedEnv  # tests/ is on sys.path under pytest
 
 from sb3_cgac import CGAC
 from sb3_cgac.export import export_policy
 
 ASYMMETRIC = dict(actor_keys=["state"], critic_keys=["state", "privileged_state"])
-
-
-class PrivilegedEnv(gym.Env):
-    """The robot senses a noisy position (``state``); the simulator knows it exactly (``privileged_state``)."""
-
-    observation_space = spaces.Dict(
-        {"state": spaces.Box(-10, 10, (2,), np.float32), "privileged_state": spaces.Box(-10, 10, (3,), np.float32)}
-    )
-    action_space = spaces.Box(-1, 1, (2,), np.float32)
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.position = self.np_random.uniform(-1, 1, 2).astype(np.float32)
-        self.steps = 0
-        return self._obs(), {}
-
-    def _obs(self):
-        noise = self.np_random.normal(0, 0.1, 2).astype(np.float32)
-        return {
-            "state": self.position + noise,
-            "privileged_state": np.append(self.position, self.steps / 20).astype(np.float32),
-        }
-
-    def step(self, action):
-        self.position = np.clip(self.position + 0.1 * action, -10, 10).astype(np.float32)
-        self.steps += 1
-        return self._obs(), -float(np.sum(self.position**2)), False, self.steps >= 20, {}
 
 
 def asymmetric_model(**policy_kwargs) -> CGAC:

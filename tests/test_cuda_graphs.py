@@ -12,7 +12,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import LinearSchedule
-from test_run import DictObsEnv  # tests/ is on sys.path under pytest
+from toy_envs import DictObsEnv  # tests/ is on sys.path under pytest
 
 from sb3_cgac import CGAC
 from sb3_cgac.buffers import CGACSamples

@@ -11,7 +11,7 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
-from test_run import DictObsEnv  # tests/ is on sys.path under pytest
+from toy_envs import DictObsEnv  # tests/ is on sys.path under pytest
 
 from sb3_cgac import CGAC
 from sb3_cgac.export import export_policy, main

@@ -10,7 +10,7 @@ from rsl_rl.runners import OnPolicyRunner
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecNormalize
-from test_asymmetric import PrivilegedEnv
+from toy_envs import PrivilegedEnv
 
 from sb3_cgac.rsl_rl import RslPPO, RslRlVecEnv
 

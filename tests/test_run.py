@@ -10,6 +10,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
+from toy_envs import DictObsEnv  # tests/ is on sys.path under pytest
 
 from sb3_cgac import CGAC, MultiInputPolicy
 from sb3_cgac.callbacks import RewardEntropySchedule
@@ -192,31 +193,6 @@ def test_env_gets_its_own_action_array(low, high):
     action = model.policy.unscale_action(scaled)
     assert not np.shares_memory(action, scaled)
     np.testing.assert_allclose(action, low + 0.5 * (scaled + 1.0) * (high - low), rtol=1e-6)
-
-
-class DictObsEnv(gym.Env):
-    """Dict observation: a position vector and a velocity; reward for driving both to zero."""
-
-    observation_space = spaces.Dict(
-        {"position": spaces.Box(-10, 10, (2,), np.float32), "velocity": spaces.Box(-10, 10, (1,), np.float32)}
-    )
-    action_space = spaces.Box(-1, 1, (2,), np.float32)
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.state = self.np_random.uniform(-1, 1, 3).astype(np.float32)
-        self.steps = 0
-        return self._obs(), {}
-
-    def _obs(self):
-        return {"position": self.state[:2].copy(), "velocity": self.state[2:].copy()}
-
-    def step(self, action):
-        self.state[:2] = np.clip(self.state[:2] + 0.1 * action, -10, 10)
-        self.state[2] = np.clip(0.9 * self.state[2], -10, 10)
-        self.steps += 1
-        reward = -float(np.sum(self.state**2))
-        return self._obs(), reward, False, self.steps >= 20, {}
 
 
 def test_dict_obs_env_is_valid():

@@ -4,46 +4,13 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from stable_baselines3.common.callbacks import BaseCallback
+from toy_envs import ReachEnv  # tests/ is on sys.path under pytest
 
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import RewardEntropySchedule
 from sb3_cgac.vec_env import GymnasiumVecEnv, NumpyToTorchVectorEnv, TorchVecEnv, make_vec_env, torch_vec_env
-
-
-class ReachEnv(gym.Env):
-    """A point pushed by the actions: terminated when it leaves the square, truncated after 25 steps."""
-
-    action_space = spaces.Box(-1, 1, (2,), np.float32)
-
-    def __init__(self, dict_obs: bool = False):
-        box = spaces.Box(-10, 10, (2,), np.float32)
-        self.dict_obs = dict_obs
-        privileged = spaces.Box(-10, 10, (3,), np.float32)
-        self.observation_space = spaces.Dict({"state": box, "privileged_state": privileged}) if dict_obs else box
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.position = self.np_random.uniform(-1, 1, 2).astype(np.float32)
-        self.steps = 0
-        return self._obs(), {}
-
-    def _obs(self):
-        if not self.dict_obs:
-            return self.position.copy()
-        privileged = np.append(self.position, self.steps / 25).astype(np.float32)
-        return {"state": self.position.copy(), "privileged_state": privileged}
-
-    def step(self, action):
-        self.position = (self.position + 0.3 * np.asarray(action, np.float32)).astype(np.float32)
-        self.steps += 1
-        terminated = bool(np.abs(self.position).max() > 1.5)
-        reward = -float(np.sum(self.position**2))
-        # Reward components, reported at every step (not at a reset): summed into the episode statistics
-        info = {"reward_distance": reward, "reward_steps": float(self.steps)}
-        return self._obs(), reward, terminated, self.steps >= 25, info
 
 
 def reach_envs(kind: str, n_envs: int = 6, dict_obs: bool = False, seed: int = 0):
