@@ -1,5 +1,5 @@
 """
-Schedules of the target-entropy coefficient beta (target entropy = -beta * |A|, paper Eq. 12-13), as SB3 callbacks.
+Schedules of the target-entropy coefficient beta (target entropy ``-beta * |A|``, paper Eq. 12-13), as SB3 callbacks.
 
 They work with any algorithm that has a ``target_entropy_beta`` attribute read at every update (``CGAC``).
 Use them from Python (``model.learn(..., callback=RewardEntropySchedule(...))``) or from a zoo YAML entry

@@ -46,7 +46,7 @@ class RunningObsNormalizer(nn.Module):
         """
         Merge a batch of observations into the statistics, on their device (no host sync).
 
-        :param obs: Observations, shape (batch, *shape)
+        :param obs: Observations, shape ``(batch, *shape)``
         :param valid: Which rows to merge (boolean, shape (batch,)); None: all
         :param all_reduce: With data-parallel training, the sum over the ranks (``DataParallel.sum``): the batch is
             then the observations of every rank, and every rank merges the same statistics

@@ -1,8 +1,8 @@
 """
 mjlab's tasks (package ``mjlab``, MuJoCo Warp; extra ``mjlab``) as a torch-native vector env: observations, rewards
-and flags stay torch tensors on the simulator's device, so that on a GPU the whole collection step stays there.
+and flags stay torch tensors on the simulator's device, so that on a GPU the whole collection step stays there::
 
-    from sb3_cgac.vec_env.torch_vec_env import TorchVecEnv
+    from sb3_cgac.vec_env import TorchVecEnv
     from sb3_cgac.vec_env.mjlab_vec_env import MjlabVectorEnv
 
     env = TorchVecEnv(MjlabVectorEnv("Mjlab-Velocity-Flat-Unitree-Go1", num_envs=4096, device="cuda:0"),

@@ -1,9 +1,9 @@
 """
 MuJoCo Playground (package ``playground``, JAX; extra ``playground``) as a torch-native vector env: the batched JAX
 state stays on JAX's device and observations, rewards and flags reach torch through DLPack without a copy (actions
-go back the same way), so that on a GPU the whole collection step stays on the GPU.
+go back the same way), so that on a GPU the whole collection step stays on the GPU::
 
-    from sb3_cgac.vec_env.torch_vec_env import TorchVecEnv
+    from sb3_cgac.vec_env import TorchVecEnv
     from sb3_cgac.vec_env.playground_vec_env import PlaygroundVectorEnv
 
     env = TorchVecEnv(PlaygroundVectorEnv("CheetahRun", num_envs=4096, impl="jax"), random_first_episode=True)
