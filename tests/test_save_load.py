@@ -174,6 +174,23 @@ def test_load_a_model_of_the_previous_release(tmp_path):
     assert again.tau == model.tau and again.batch_size == 64
 
 
+def test_load_a_model_of_0_2_0(tmp_path):
+    """
+    A model saved with 0.2.0's defaults (commit 81b6280: Pendulum-v1, 16 envs, [16, 16] networks, batch 64, 128 steps)
+    loads with its own settings whatever the defaults of this release, acts as it did, and trains on.
+    """
+    env = make_vec_env("Pendulum-v1", n_envs=16, seed=0)
+    model = CGAC.load(DATA / "cgac-0.2.0-pendulum", env=env)
+    obs = np.linspace(-1, 1, 30, dtype=np.float32).reshape(10, 3)
+    expected = np.load(DATA / "cgac-0.2.0-pendulum-actions.npy")
+    np.testing.assert_allclose(model.predict(obs, deterministic=True)[0], expected, rtol=0, atol=1e-6)
+    assert model.gamma == 0.99 and not model.scale_rewards and model.return_scale is None
+    assert (model.batch_size, model.critic_updates_per_step, model.tau, model.policy_tau) == (64, 4, 0.02, 0.05)
+    assert model.learning_rate == 2e-3 and model.target_entropy_beta == 1.0 and model.predict_tau is None
+    assert model.policy.obs_normalizer is None and model.policy.actor_kwargs["mean_init_scale"] == 1.0
+    model.learn(16 * 4, reset_num_timesteps=False)
+
+
 def test_a_model_with_removed_options_names_the_release():
     with pytest.raises(ValueError, match=r"entropy_schedule='reward'.*behaviour_kl_coef=1.0|behaviour_kl_coef=1.0.*v0\.1\.0"):
         CGAC.load(DATA / "cgac-0.1.0-removed-options")
