@@ -55,7 +55,8 @@ def test_return_scale_matches_numpy():
     rewards = rng.normal(3.0, 2.0, (300, 8))
     dones = rng.random((300, 8)) < 0.02
     scale = ReturnScale(gamma=0.9)
-    scaled = [scale.scale_rewards(th.as_tensor(r, dtype=th.float32), th.as_tensor(d)) for r, d in zip(rewards, dones, strict=True)]
+    steps = zip(rewards, dones, strict=True)
+    scaled = [scale.scale_rewards(th.as_tensor(r, dtype=th.float32), th.as_tensor(d)) for r, d in steps]
     returns = discounted_returns(rewards, dones, 0.9)
     expected = max(returns.std(), np.abs(returns).max() / RETURN_LIMIT)
     assert float(scale.scale()) == pytest.approx(expected, rel=1e-5)
