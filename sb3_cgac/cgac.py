@@ -78,6 +78,7 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param scale_rewards: Divide the rewards the critics learn from by ``max(std(G), max|G| / 5)`` of the envs'
         running discounted returns ``G`` (SimbaV2's scaling), so that their targets sit in a fixed range whatever the
         reward scale; the statistics are saved with the model, and the callbacks and logs see the env's rewards
+        (under torchrun each rank scales by the statistics of its own envs)
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
@@ -142,7 +143,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        arguments = dict(locals())  # the constructor's arguments, checked once the base class has set the policy's
+        arguments = dict(locals())  # the constructor's arguments, checked once the base class has set policy_kwargs
         super().__init__(
             policy,  # type: ignore[arg-type]
             env,
