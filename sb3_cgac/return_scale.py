@@ -7,6 +7,8 @@ cannot blow them up. Statistics stay on the device: no host sync per step.
 
 import torch as th
 
+from sb3_cgac.torch_layers import RunningObsNormalizer
+
 # Scaled discounted returns stay within about +/- this (SimbaV2's G_max)
 RETURN_LIMIT = 5.0
 # Floor of the scale, so that an all-zero reward stream leaves rewards unchanged rather than dividing by zero
@@ -16,8 +18,8 @@ SCALE_EPS = 1e-4
 class ReturnScale:
     """
     Running statistics of every env's discounted return ``G_t = gamma * G_{t-1} + r_t`` (reset at episode ends) over
-    all envs and steps seen: count, mean and sum of squared deviations (Chan et al.'s parallel update) and the largest
-    ``|G|``. ``scale_rewards`` updates them with a step's rewards, then divides the rewards by the scale.
+    all envs and steps seen: their mean and variance (the policy's running normaliser, merged batch by batch) and the
+    largest ``|G|``. ``scale_rewards`` updates them with a step's rewards, then divides the rewards by the scale.
 
     :param gamma: Discount factor of the returns (the algorithm's)
     :param device: Device of the statistics (the rewards')
@@ -25,19 +27,14 @@ class ReturnScale:
 
     def __init__(self, gamma: float, device: th.device | str = "cpu"):
         self.gamma = gamma
-        self.device = th.device(device)
-        # float64: the count reaches the hundreds of millions, and float32 means would stop moving
-        self.count = th.zeros((), dtype=th.float64, device=self.device)
-        self.mean = th.zeros((), dtype=th.float64, device=self.device)
-        self.m2 = th.zeros((), dtype=th.float64, device=self.device)
-        self.max_abs = th.zeros((), dtype=th.float64, device=self.device)
+        self.statistics = RunningObsNormalizer(()).to(device)
+        self.max_abs = th.zeros((), device=device)
         self.returns: th.Tensor | None = None  # each env's running return; reset with the envs
 
     def to(self, device: th.device | str) -> "ReturnScale":
         """Move the statistics to ``device`` (a model loaded on another device)."""
-        self.device = th.device(device)
-        for name in ("count", "mean", "m2", "max_abs"):
-            setattr(self, name, getattr(self, name).to(self.device))
+        self.statistics = self.statistics.to(device)
+        self.max_abs = self.max_abs.to(device)
         self.returns = None
         return self
 
@@ -46,9 +43,8 @@ class ReturnScale:
         self.returns = None
 
     def scale(self) -> th.Tensor:
-        """:return: The current divisor of the rewards, a float32 scalar on the device"""
-        variance = self.m2 / self.count.clamp_min(1.0)
-        return th.maximum(variance.sqrt(), self.max_abs / RETURN_LIMIT).clamp_min(SCALE_EPS).float()
+        """:return: The current divisor of the rewards, a scalar on the device"""
+        return th.maximum(self.statistics.var.sqrt(), self.max_abs / RETURN_LIMIT).clamp_min(SCALE_EPS)
 
     def scale_rewards(self, rewards: th.Tensor, dones: th.Tensor) -> th.Tensor:
         """
@@ -60,18 +56,11 @@ class ReturnScale:
         :return: The rewards divided by the scale
         """
         finite = th.isfinite(rewards)
-        rewards64 = th.where(finite, rewards, 0.0).double()
         if self.returns is None or self.returns.shape != rewards.shape:
-            self.returns = th.zeros_like(rewards64)
-        returns = self.gamma * self.returns + rewards64
-        batch_count = float(returns.numel())
-        batch_mean = returns.mean()
-        delta = batch_mean - self.mean
-        total = self.count + batch_count
-        self.mean = self.mean + delta * batch_count / total
-        self.m2 = self.m2 + ((returns - batch_mean) ** 2).sum() + delta**2 * self.count * batch_count / total
-        self.count = total
-        self.max_abs = th.maximum(self.max_abs, returns.abs().max())
+            self.returns = th.zeros_like(rewards)
+        returns = self.gamma * self.returns + th.where(finite, rewards, 0.0)
+        self.statistics.update(returns, finite)
+        self.max_abs = th.maximum(self.max_abs, th.where(finite, returns.abs(), 0.0).max())
         self.returns = th.where(dones.to(returns.device), 0.0, returns)
         return th.where(finite, rewards / self.scale(), rewards)
 

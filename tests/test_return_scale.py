@@ -89,6 +89,6 @@ def test_scale_rewards_trains_saves_and_loads(tmp_path):
     model.save(tmp_path / "model")
     loaded = CGAC.load(tmp_path / "model", env=env)
     assert loaded.scale_rewards and float(loaded.return_scale.scale()) == pytest.approx(scale)
-    count = float(loaded.return_scale.count)
+    count = float(loaded.return_scale.statistics.count)
     loaded.learn(8 * 8, reset_num_timesteps=False)
-    assert float(loaded.return_scale.count) == count + 8 * 8
+    assert float(loaded.return_scale.statistics.count) == count + 8 * 8
