@@ -9,7 +9,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples
-from sb3_cgac.common.compat import upgrade_saved_attributes
+from sb3_cgac.common.compat import upgrade_saved_attributes, upgrade_saved_defaults
 from sb3_cgac.common.cuda_graphs import UpdateGraphs, plain_optimizer_states, set_learning_rate
 from sb3_cgac.common.diagnostics import check_finite_parameters, read_statistics, total_grad_norm
 from sb3_cgac.common.distributed import RANK_SEED_STRIDE, start_data_parallel, world
@@ -196,6 +196,8 @@ class CGAC(WindowOnPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         upgrade_saved_attributes(self.__dict__)  # a model loaded from an sb3_cgac 0.1.0 file
+        # The policy's defaults when the model was made: a later release's defaults do not change a saved model
+        self.policy_defaults = upgrade_saved_defaults(self.__dict__, self.policy_class)
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         # "auto" becomes the numbers for this device and env count. A loaded model keeps the numbers it was saved with:
@@ -229,7 +231,7 @@ class CGAC(WindowOnPolicyAlgorithm):
             **self.rollout_buffer_kwargs,
         )
         # The policy keeps the copy of the actor that predict() acts with exactly when predict_tau averages one
-        policy_kwargs = {**self.policy_kwargs, "predict_actor": self.predict_tau is not None}
+        policy_kwargs = {**self.policy_defaults, **self.policy_kwargs, "predict_actor": self.predict_tau is not None}
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.action_space, self.lr_schedule, **policy_kwargs
         )

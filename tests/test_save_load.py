@@ -1,3 +1,4 @@
+import inspect
 import io
 import pathlib
 
@@ -7,7 +8,8 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_cgac import CGAC
-from sb3_cgac.policies import CGACPolicy
+from sb3_cgac.common.compat import policy_defaults
+from sb3_cgac.policies import CGACPolicy, MultiInputPolicy
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 # Models saved by sb3_cgac 0.1.0 (git tag v0.1.0): Pendulum-v1, 16 envs, [16, 16] networks, batch 64, 128 steps;
@@ -156,7 +158,47 @@ def test_save_load_observation_normalizer(tmp_path):
     assert float(loaded.policy.obs_normalizer.count) > count
 
 
-def test_load_a_model_of_the_previous_release(tmp_path):
+def with_defaults(function, **defaults) -> tuple:
+    """:return: The function's positional defaults with some replaced by name"""
+    names = [p.name for p in inspect.signature(function).parameters.values() if p.default is not p.empty]
+    return tuple(defaults.get(name, value) for name, value in zip(names, function.__defaults__, strict=True))
+
+
+@pytest.fixture(params=["these defaults", "changed defaults"])
+def release_defaults(request, monkeypatch):
+    """This release's defaults, or those of a later release that changed the policy's and the algorithm's"""
+    if request.param == "changed defaults":
+        changed = dict(normalize_observations=True, mean_init_scale=0.01, n_bins=101, log_std_init=0.0)
+        monkeypatch.setattr(CGACPolicy.__init__, "__defaults__", with_defaults(CGACPolicy.__init__, **changed))
+        monkeypatch.setattr(CGAC.__init__, "__defaults__", with_defaults(CGAC.__init__, scale_rewards=True))
+        assert CGAC("MlpPolicy", make_env(), **SMALL).policy.critic.support is not None  # the change is in effect
+    return request.param
+
+
+def test_a_saved_model_keeps_its_policy_defaults(tmp_path, monkeypatch):
+    """A model saved now builds the same policy after a later release changed the policy's defaults."""
+    model = CGAC("MlpPolicy", make_env(), **SMALL)
+    model.learn(256)
+    model.save(tmp_path / "model")
+    obs = np.linspace(-1, 1, 30, dtype=np.float32).reshape(10, 3)
+    expected = model.predict(obs, deterministic=True)[0]
+    changed = dict(normalize_observations=True, mean_init_scale=0.01, n_bins=101)
+    monkeypatch.setattr(CGACPolicy.__init__, "__defaults__", with_defaults(CGACPolicy.__init__, **changed))
+    assert CGAC("MlpPolicy", make_env(), **SMALL).policy.obs_normalizer is not None  # the change is in effect
+    loaded = CGAC.load(tmp_path / "model", env=make_env())
+    assert loaded.policy.obs_normalizer is None and loaded.policy.critic.support is None
+    np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], expected, rtol=0, atol=1e-6)
+    loaded.learn(256, reset_num_timesteps=False)
+
+
+def test_policy_defaults_reach_through_keyword_arguments():
+    """MultiInputPolicy passes its keyword arguments on: the defaults saved with its models are CGACPolicy's."""
+    assert policy_defaults(MultiInputPolicy) == policy_defaults(CGACPolicy)
+    defaults = policy_defaults(CGACPolicy)
+    assert defaults["normalize_observations"] is False and "features_extractor_class" not in defaults
+
+
+def test_load_a_model_of_the_previous_release(tmp_path, release_defaults):
     """A model saved by 0.1.0 with its defaults loads, acts as it did there, trains on and saves again."""
     env = make_vec_env("Pendulum-v1", n_envs=16, seed=0)
     model = CGAC.load(DATA / "cgac-0.1.0-pendulum", env=env)
@@ -168,13 +210,14 @@ def test_load_a_model_of_the_previous_release(tmp_path):
     assert (model.batch_size, model.critic_updates_per_step) == (64, 4)
     assert model.tau == pytest.approx(1 - 0.995 ** np.sqrt(4096 / 8))
     assert not hasattr(model, "behaviour_kl_coef") and "stack_critics" not in model.policy_kwargs
+    assert not model.scale_rewards and model.policy.obs_normalizer is None and model.policy.critic.support is None
     model.learn(16 * 4, reset_num_timesteps=False)
     model.save(tmp_path / "again")
     again = CGAC.load(tmp_path / "again", env=env)
     assert again.tau == model.tau and again.batch_size == 64
 
 
-def test_load_a_model_of_0_2_0(tmp_path):
+def test_load_a_model_of_0_2_0(tmp_path, release_defaults):
     """
     A model saved with 0.2.0's defaults (commit 81b6280: Pendulum-v1, 16 envs, [16, 16] networks, batch 64, 128 steps)
     loads with its own settings whatever the defaults of this release, acts as it did, and trains on.
@@ -188,6 +231,7 @@ def test_load_a_model_of_0_2_0(tmp_path):
     assert (model.batch_size, model.critic_updates_per_step, model.tau, model.policy_tau) == (64, 4, 0.02, 0.05)
     assert model.learning_rate == 2e-3 and model.target_entropy_beta == 1.0 and model.predict_tau is None
     assert model.policy.obs_normalizer is None and model.policy.actor_kwargs["mean_init_scale"] == 1.0
+    assert model.policy.critic.support is None
     model.learn(16 * 4, reset_num_timesteps=False)
 
 
