@@ -4,13 +4,15 @@ Training throughput of this checkout (or a second revision) against a git revisi
     python benchmarks/revisions.py HEAD~1                # this checkout against HEAD~1: every case, 8 rounds
     python benchmarks/revisions.py 85f7146 973f1ca      # one commit against its parent
     python benchmarks/revisions.py v0.2.0 --cases quickstart --rounds 4 --output revisions.md
+    python benchmarks/revisions.py HEAD --cases halfcheetah --conf candidate.yml   # a YAML's entry against the entry
 
 Each revision trains in its own process (the revision's ``sb3_cgac`` first on ``PYTHONPATH``, extracted with ``git
 archive``; the YAML entries of this checkout's ``hyperparams/``), and the processes take turns: one chunk of training
 of one, then the same chunk of the other, so that the machine's speed drift hits both alike and only one trains at a
-time. A round's ratio is the new side's steps/s (this checkout, or the second revision) over the old side's in that
-round; the table gives the mean steps/s over the rounds and the median and range of the rounds' ratios. Run it on a
-quiet machine; timings are printed, never asserted.
+time. ``--conf`` and ``--old-conf`` build the HalfCheetah-v5 cases from another YAML file's entry on the new and the
+old side (the same revision on both sides compares two settings). A round's ratio is the new side's steps/s (this
+checkout, or the second revision) over the old side's in that round; the table gives the mean steps/s over the rounds
+and the median and range of the rounds' ratios. Run it on a quiet machine; timings are printed, never asserted.
 
 Cases (CPU, the library's default threads):
 - ``halfcheetah``: the HalfCheetah-v5 entry of hyperparams/cgac.yml (128 envs, DummyVecEnv), built as the zoo builds it;
@@ -41,11 +43,11 @@ import json, sys, tempfile, time
 import torch as th
 
 out, sys.stdout = sys.stdout, sys.stderr  # stdout answers the parent; what the library prints goes to stderr
-case, chunk = sys.argv[1], int(sys.argv[2])
+case, chunk, conf = sys.argv[1], int(sys.argv[2]), sys.argv[3] or None
 if case in ("halfcheetah", "collect"):
     from sb3_cgac.zoo import build_model
 
-    model, _ = build_model("cgac", "HalfCheetah-v5", seed=0, log_folder=tempfile.mkdtemp(), device="cpu")
+    model, _ = build_model("cgac", "HalfCheetah-v5", seed=0, log_folder=tempfile.mkdtemp(), conf_file=conf, device="cpu")
 else:
     from sb3_cgac import CGAC
     from sb3_cgac.vec_env import make_vec_env
@@ -84,12 +86,14 @@ def extract(revision: str, folder: Path) -> str:
     return commit.stdout.strip()
 
 
-def start_worker(source: Path, case: str, chunk: int) -> tuple[subprocess.Popen, int]:
-    """A process that trains ``case`` with the ``sb3_cgac`` of ``source``, and its number of torch threads."""
+def start_worker(source: Path, case: str, chunk: int, conf: str) -> tuple[subprocess.Popen, int]:
+    """
+    A process that trains ``case`` with the ``sb3_cgac`` of ``source`` (and the YAML file ``conf``, if not empty),
+    and its number of torch threads.
+    """
     env = {**os.environ, "PYTHONPATH": str(source)}
-    process = subprocess.Popen(
-        [sys.executable, "-c", WORKER, case, str(chunk)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
-    )
+    command = [sys.executable, "-c", WORKER, case, str(chunk), conf]
+    process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
     assert process.stdout is not None
     return process, json.loads(process.stdout.readline())["threads"]
 
@@ -102,12 +106,12 @@ def run_chunk(process: subprocess.Popen) -> float:
     return answer["steps"] / answer["seconds"]
 
 
-def compare(case: str, sources: dict[str, Path], chunk: int, rounds: int) -> tuple[dict[str, list[float]], int]:
+def compare(case: str, sources: dict[str, tuple[Path, str]], chunk: int, rounds: int) -> tuple[dict[str, list[float]], int]:
     """
-    Steps/s of each source in each round, the sources taking turns (their order alternates from round to round), and
-    the workers' number of torch threads.
+    Steps/s of each source (a tree and a YAML file or "") in each round, the sources taking turns (their order
+    alternates from round to round), and the workers' number of torch threads.
     """
-    started = {name: start_worker(source, case, chunk) for name, source in sources.items()}
+    started = {name: start_worker(source, case, chunk, conf) for name, (source, conf) in sources.items()}
     workers = {name: process for name, (process, _) in started.items()}
     rates: dict[str, list[float]] = {name: [] for name in sources}
     try:
@@ -131,13 +135,18 @@ def main() -> None:
     parser.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
     parser.add_argument("--rounds", type=int, default=8)
     parser.add_argument("--chunk", type=int, default=128, help="steps of every env per chunk")
+    parser.add_argument("--conf", default="", help="YAML file of the new side's HalfCheetah-v5 entry")
+    parser.add_argument("--old-conf", default="", help="YAML file of the old side's HalfCheetah-v5 entry")
     parser.add_argument("--output", help="also write the table to this file")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory() as old_folder, tempfile.TemporaryDirectory() as new_folder:
         commit = extract(args.revision, Path(old_folder))
         new = extract(args.new, Path(new_folder)) if args.new else "this checkout"
-        sources = {new: Path(new_folder) if args.new else ROOT, commit: Path(old_folder)}
+        new += f" ({Path(args.conf).stem})" if args.conf else ""
+        commit += f" ({Path(args.old_conf).stem})" if args.old_conf else ""
+        confs = [str(Path(conf).resolve()) if conf else "" for conf in (args.conf, args.old_conf)]
+        sources = {new: (Path(new_folder) if args.new else ROOT, confs[0]), commit: (Path(old_folder), confs[1])}
         lines = [
             f"| case | {new} (steps/s) | {commit} (steps/s) | ratio, median of rounds | ratio, range |",
             "| --- | --- | --- | --- | --- |",
@@ -152,6 +161,7 @@ def main() -> None:
             )
             print(lines[-1], flush=True)
     command = " ".join(["python benchmarks/revisions.py", args.revision, *([args.new] if args.new else [])])
+    command += "".join(f" --{name} {value}" for name, value in (("conf", args.conf), ("old-conf", args.old_conf)) if value)
     header = (
         f"{machine(threads)}; `{command}`: {new} against {commit}, {args.rounds} rounds of {args.chunk} steps per env, "
         f"{time.strftime('%Y-%m-%d')}"
