@@ -79,6 +79,9 @@ class CGAC(WindowOnPolicyAlgorithm):
         running discounted returns ``G`` (SimbaV2's scaling), so that their targets sit in a fixed range whatever the
         reward scale; the statistics are saved with the model, and the callbacks and logs see the env's rewards
         (under torchrun each rank scales by the statistics of its own envs)
+    :param critic_loss: The scalar critics' regression loss (Eq. 8): ``"huber"``, the paper code's adaptive Huber
+        loss (squared below 4x the minibatch's median error, linear above), or ``"mse"``, the squared error, which
+        keeps the full gradient of a sparse reward's rare large targets (categorical critics use their cross-entropy)
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
@@ -130,6 +133,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
         scale_rewards: bool = False,
+        critic_loss: str = "huber",
         max_grad_norm: float = 20.0,
         update_precision: str = "float32",
         cuda_graphs: bool = False,
@@ -174,6 +178,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
         self.scale_rewards = scale_rewards
+        self.critic_loss = critic_loss
         self.update_precision = update_precision
         self.cuda_graphs = cuda_graphs
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
@@ -279,7 +284,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         """One critic update (paper Eq. 8) on a minibatch; returns its statistics by name."""
         weight_sum = data.weights.sum().clamp_min(1.0)
         gather = self._parallel.gather if self._parallel is not None else None
-        loss, q_mean = critic_loss(self.critic, *data, weight_sum, self._autocast_dtype, gather)
+        loss, q_mean = critic_loss(self.critic, *data, weight_sum, self._autocast_dtype, gather, self.critic_loss)
         self.critic.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self._parallel is not None:  # data-parallel: the mean gradient of every rank's minibatch

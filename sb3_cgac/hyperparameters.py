@@ -87,6 +87,7 @@ def check_hyperparameters(
     max_grad_norm: float | None,
     ent_coef: str | float,
     ent_coef_monotone: bool | str,
+    critic_loss: str,
     update_precision: str,
     cuda_graphs: bool,
 ) -> None:
@@ -132,6 +133,7 @@ def check_hyperparameters(
         ": True is the paper's clamp (alpha never increases), 'above_target' holds alpha only while the entropy is "
         "at or above its target, False leaves it free",
     )
+    check_choice("critic_loss", critic_loss, ("huber", "mse"))
     check_choice("update_precision", update_precision, UPDATE_PRECISIONS)
     if not isinstance(cuda_graphs, bool):
         raise ValueError(f"CGAC: cuda_graphs must be True or False, got {cuda_graphs!r}.")

@@ -14,20 +14,25 @@ from sb3_cgac.policies import Actor, CGACCritic
 Gather = Callable[[th.Tensor], th.Tensor]
 
 
-def q_regression_loss(q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor, gather: Gather | None = None) -> th.Tensor:
+def q_regression_loss(
+    q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor, gather: Gather | None = None, loss: str = "huber"
+) -> th.Tensor:
     """
-    Sum over critics and batch of the per-sample regression loss of the critics to the Q-GAE targets (paper Eq. 8):
-    the adaptive Huber loss of the paper's code, squared below 4x the batch median of ``|delta|`` of each critic and
-    linear above (continuous at the threshold), so that a few huge target errors cannot dominate the update.
+    Sum over critics and batch of the per-sample regression loss of the critics to the Q-GAE targets (paper Eq. 8).
 
     :param q_values: Q-values of each critic, shape (n_critics, batch)
     :param returns: Q-GAE targets, shape (batch,)
     :param weights: Sample weights (0 for excluded transitions), shape (batch,)
     :param gather: With data-parallel training, the concatenation over the ranks (``DataParallel.gather``): the
         median is then that of every rank's minibatch, as one process with all of them would take it
+    :param loss: ``"huber"``: the adaptive Huber loss of the paper's code, squared below 4x the batch median of
+        ``|delta|`` of each critic and linear above (continuous at the threshold), so that a few huge target errors
+        cannot dominate the update; ``"mse"``: the squared error everywhere (Eq. 8 as written)
     :return: The summed loss (divide by the weight sum for the mean)
     """
     delta = (q_values - returns) * weights
+    if loss == "mse":
+        return (delta**2).sum()
     abs_delta = delta.abs()
     batch = abs_delta.detach() if gather is None else gather(abs_delta.detach())
     threshold = 4.0 * batch.median(dim=-1, keepdim=True).values
@@ -44,6 +49,7 @@ def critic_loss(
     weight_sum: th.Tensor,
     autocast_dtype: th.dtype | None = None,
     gather: Gather | None = None,
+    loss: str = "huber",
 ) -> tuple[th.Tensor, th.Tensor]:
     """
     Weighted mean loss of all critics to the Q-GAE targets: the regression of paper Eq. 8 (see ``q_regression_loss``),
@@ -57,16 +63,17 @@ def critic_loss(
     :param weight_sum: Sum of the weights (at least 1)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
     :param gather: With data-parallel training, the concatenation over the ranks (see ``q_regression_loss``)
+    :param loss: The regression loss of scalar critics, ``"huber"`` or ``"mse"`` (see ``q_regression_loss``)
     :return: The loss, and the mean Q-value of the first critic (detached)
     """
     with th.autocast(actions.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
         outputs = critic.q_outputs(observations, actions)
     q_values = critic.q_values_from_outputs(outputs.float())
     if critic.support is None:
-        loss = q_regression_loss(q_values, returns, weights, gather)
+        total = q_regression_loss(q_values, returns, weights, gather, loss)
     else:
-        loss = (critic.support.cross_entropy(outputs, returns) * weights).sum()
-    return loss / weight_sum, q_values[0].detach().mean()
+        total = (critic.support.cross_entropy(outputs, returns) * weights).sum()
+    return total / weight_sum, q_values[0].detach().mean()
 
 
 def actor_loss(

@@ -32,6 +32,15 @@ def test_q_regression_loss():
     # Huber, per critic: 4x the median |delta| (lower median of [0, 1, 1, 2] and [0, 1, 1, 10]: 1) is 4; |delta| = 10 is
     # above it and counts linearly, 2 * 4 * 10 - 4**2 = 64 (the excluded sample has delta = 0)
     assert q_regression_loss(q_values, returns, weights) == pytest.approx((1 + 1 + 4) + (1 + 1 + 64))
+    # The squared error everywhere: 10 counts as 100
+    assert q_regression_loss(q_values, returns, weights, loss="mse") == pytest.approx((1 + 1 + 4) + (1 + 1 + 100))
+
+
+def test_critic_loss_option():
+    model = filled_model(critic_loss="mse")
+    assert model.critic_loss == "mse" and one_update(model)["critic_loss"] > 0
+    with pytest.raises(ValueError, match=r"unknown critic_loss 'l1'; choose one of \('huber', 'mse'\)"):
+        filled_model(critic_loss="l1")
 
 
 def test_bfloat16_updates_match_float32():

@@ -24,7 +24,6 @@ REMOVED_ARGUMENTS: dict[str, Any] = {
     "refresh_target_values": False,
     "entropy_schedule": None,
     "entropy_schedule_kwargs": {},
-    "critic_loss": "huber",
     "actor_max_grad_norm": None,
     "clip_actor_gradient_outliers": False,
     "behaviour_kl_coef": 0.0,
