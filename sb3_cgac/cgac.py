@@ -82,9 +82,6 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param critic_loss: The scalar critics' regression loss (Eq. 8): ``"huber"``, the paper code's adaptive Huber
         loss (squared below 4x the minibatch's median error, linear above), or ``"mse"``, the squared error, which
         keeps the full gradient of a sparse reward's rare large targets (categorical critics use their cross-entropy)
-    :param huber_floor: The lowest threshold of the adaptive Huber loss, in the critics' targets' units (with
-        ``scale_rewards=True`` the targets lie within +-5): errors below it are always squared, so that the rare
-        rewarded targets of a sparse reward, far above a median error near 0, keep a gradient (0: the paper code's loss)
     :param max_grad_norm: Gradient-norm clipping of the critic update (paper's code: 20)
     :param update_precision: ``"float32"``, ``"bfloat16"`` (the networks of the updates under autocast; losses,
         optimizers and collection stay float32), or ``"auto"``: bfloat16 on CPUs with AVX512-BF16 or AMX
@@ -137,7 +134,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         ent_coef_monotone: bool | str = "above_target",
         scale_rewards: bool = False,
         critic_loss: str = "huber",
-        huber_floor: float = 0.0,
         max_grad_norm: float = 20.0,
         update_precision: str = "float32",
         cuda_graphs: bool = False,
@@ -183,7 +179,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.ent_coef_monotone = ent_coef_monotone
         self.scale_rewards = scale_rewards
         self.critic_loss = critic_loss
-        self.huber_floor = huber_floor
         self.update_precision = update_precision
         self.cuda_graphs = cuda_graphs
         self.rollout_buffer_class = rollout_buffer_class  # type: ignore[assignment]
@@ -289,9 +284,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         """One critic update (paper Eq. 8) on a minibatch; returns its statistics by name."""
         weight_sum = data.weights.sum().clamp_min(1.0)
         gather = self._parallel.gather if self._parallel is not None else None
-        loss, q_mean = critic_loss(
-            self.critic, *data, weight_sum, self._autocast_dtype, gather, self.critic_loss, self.huber_floor
-        )
+        loss, q_mean = critic_loss(self.critic, *data, weight_sum, self._autocast_dtype, gather, self.critic_loss)
         self.critic.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self._parallel is not None:  # data-parallel: the mean gradient of every rank's minibatch

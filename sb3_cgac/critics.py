@@ -49,38 +49,32 @@ def symexp(x: th.Tensor) -> th.Tensor:
 class HistogramSupport(nn.Module):
     """
     A fixed categorical support for Q-values: ``n_bins`` equal bins over ``[-SYMLOG_LIMIT, SYMLOG_LIMIT]`` in symlog
-    space, so that one support covers returns up to about 22,000 in magnitude with no per-task range, or, given a
-    ``limit``, over ``[-limit, limit]`` in the returns' own units (for returns known to lie there: ``scale_rewards``
-    keeps them within +-5, SimbaV2's support). A scalar target (a Q-GAE(lambda) return, paper Eq. 9-10) becomes a
-    distribution by HL-Gauss: the mass of a Gaussian centred on it (on its symlog), of standard deviation 0.75 bin
-    widths, that falls in each bin; the critics are trained by cross-entropy to it, and their Q-value is the expected
-    bin centre (its symexp).
+    space, so that one support covers returns up to about 22,000 in magnitude with no per-task range. A scalar
+    target (a Q-GAE(lambda) return, paper Eq. 9-10) becomes a distribution by HL-Gauss: the mass of a Gaussian centred
+    on its symlog, of standard deviation 0.75 bin widths, that falls in each bin; the critics are trained by
+    cross-entropy to it, and their Q-value is the symexp of the expected bin centre.
 
     :param n_bins: Number of bins (at least 2)
-    :param limit: None: the symlog support; a number > 0: the bins spread evenly over ``[-limit, limit]``
     """
 
     edges: th.Tensor
     centers: th.Tensor
 
-    def __init__(self, n_bins: int, limit: float | None = None):
+    def __init__(self, n_bins: int):
         super().__init__()
-        self.symlog = limit is None
-        self.limit = SYMLOG_LIMIT if limit is None else float(limit)
-        edges = th.linspace(-self.limit, self.limit, n_bins + 1)
-        self.sigma = HL_GAUSS_SIGMA * 2 * self.limit / n_bins
+        edges = th.linspace(-SYMLOG_LIMIT, SYMLOG_LIMIT, n_bins + 1)
+        self.sigma = HL_GAUSS_SIGMA * 2 * SYMLOG_LIMIT / n_bins
         # Not saved: n_bins determines them
         self.register_buffer("edges", edges, persistent=False)
         self.register_buffer("centers", (edges[:-1] + edges[1:]) / 2, persistent=False)
 
     def expected_value(self, logits: th.Tensor) -> th.Tensor:
         """:return: The Q-values of logits over the bins (last dimension), in float32"""
-        expected = th.softmax(logits.float(), dim=-1) @ self.centers
-        return symexp(expected) if self.symlog else expected
+        return symexp(th.softmax(logits.float(), dim=-1) @ self.centers)
 
     def target_probabilities(self, returns: th.Tensor) -> th.Tensor:
         """:return: The HL-Gauss distributions of scalar targets over the bins, shape ``(*returns.shape, n_bins)``"""
-        mean = (symlog(returns) if self.symlog else returns).clamp(-self.limit, self.limit).unsqueeze(-1)
+        mean = symlog(returns).clamp(-SYMLOG_LIMIT, SYMLOG_LIMIT).unsqueeze(-1)
         cdf = th.special.ndtr((self.edges - mean) / self.sigma)
         mass = cdf[..., 1:] - cdf[..., :-1]
         # The Gaussian's tails beyond the support are left out (a target at a limit puts half its mass outside)
@@ -133,7 +127,6 @@ class CGACCritic(ContinuousCritic):
     :param layer_norm: Whether to put a LayerNorm between each hidden layer and its activation
     :param n_bins: None: each critic outputs one Q-value, regressed to its targets (paper Eq. 8); a number: each
         outputs logits over a ``HistogramSupport`` of that many bins, trained by cross-entropy
-    :param value_limit: With ``n_bins``: None, the support's symlog range; a number, its linear range ``+-value_limit``
     """
 
     def __init__(
@@ -150,7 +143,6 @@ class CGACCritic(ContinuousCritic):
         use_xavier_init: bool = True,
         layer_norm: bool = False,
         n_bins: int | None = None,
-        value_limit: float | None = None,
     ):
         super().__init__(
             observation_space,
@@ -164,7 +156,7 @@ class CGACCritic(ContinuousCritic):
             share_features_extractor,
         )
         self.layer_norm = layer_norm
-        self.support = None if n_bins is None else HistogramSupport(n_bins, value_limit)
+        self.support = None if n_bins is None else HistogramSupport(n_bins)
         if layer_norm or n_bins is not None:
             # SB3's networks rebuilt with the norms and the bins (the default critics keep SB3's, and their seeds)
             input_dim = features_dim + get_action_dim(action_space)

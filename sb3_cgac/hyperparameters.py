@@ -88,7 +88,6 @@ def check_hyperparameters(
     ent_coef: str | float,
     ent_coef_monotone: bool | str,
     critic_loss: str,
-    huber_floor: float,
     update_precision: str,
     cuda_graphs: bool,
 ) -> None:
@@ -135,10 +134,6 @@ def check_hyperparameters(
         "at or above its target, False leaves it free",
     )
     check_choice("critic_loss", critic_loss, ("huber", "mse"))
-    if isinstance(huber_floor, bool) or not isinstance(huber_floor, (int, float)) or not 0.0 <= huber_floor < math.inf:
-        raise ValueError(
-            f"CGAC: huber_floor must be a finite number >= 0 (0: the paper code's Huber loss), got {huber_floor!r}."
-        )
     check_choice("update_precision", update_precision, UPDATE_PRECISIONS)
     if not isinstance(cuda_graphs, bool):
         raise ValueError(f"CGAC: cuda_graphs must be True or False, got {cuda_graphs!r}.")

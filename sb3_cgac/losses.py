@@ -15,12 +15,7 @@ Gather = Callable[[th.Tensor], th.Tensor]
 
 
 def q_regression_loss(
-    q_values: th.Tensor,
-    returns: th.Tensor,
-    weights: th.Tensor,
-    gather: Gather | None = None,
-    loss: str = "huber",
-    huber_floor: float = 0.0,
+    q_values: th.Tensor, returns: th.Tensor, weights: th.Tensor, gather: Gather | None = None, loss: str = "huber"
 ) -> th.Tensor:
     """
     Sum over critics and batch of the per-sample regression loss of the critics to the Q-GAE targets (paper Eq. 8).
@@ -33,8 +28,6 @@ def q_regression_loss(
     :param loss: ``"huber"``: the adaptive Huber loss of the paper's code, squared below 4x the batch median of
         ``|delta|`` of each critic and linear above (continuous at the threshold), so that a few huge target errors
         cannot dominate the update; ``"mse"``: the squared error everywhere (Eq. 8 as written)
-    :param huber_floor: The Huber threshold's lowest value, in the targets' units: errors below it are always
-        squared (0: the paper code's threshold)
     :return: The summed loss (divide by the weight sum for the mean)
     """
     delta = (q_values - returns) * weights
@@ -42,8 +35,7 @@ def q_regression_loss(
         return (delta**2).sum()
     abs_delta = delta.abs()
     batch = abs_delta.detach() if gather is None else gather(abs_delta.detach())
-    # With a sparse reward the median error is near 0, and the floor keeps the rare rewarded targets in the squared part
-    threshold = (4.0 * batch.median(dim=-1, keepdim=True).values).clamp(min=huber_floor)
+    threshold = 4.0 * batch.median(dim=-1, keepdim=True).values
     linear = 2.0 * threshold * abs_delta - threshold**2
     return th.where(abs_delta < threshold, delta**2, linear).sum()
 
@@ -58,7 +50,6 @@ def critic_loss(
     autocast_dtype: th.dtype | None = None,
     gather: Gather | None = None,
     loss: str = "huber",
-    huber_floor: float = 0.0,
 ) -> tuple[th.Tensor, th.Tensor]:
     """
     Weighted mean loss of all critics to the Q-GAE targets: the regression of paper Eq. 8 (see ``q_regression_loss``),
@@ -73,14 +64,13 @@ def critic_loss(
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
     :param gather: With data-parallel training, the concatenation over the ranks (see ``q_regression_loss``)
     :param loss: The regression loss of scalar critics, ``"huber"`` or ``"mse"`` (see ``q_regression_loss``)
-    :param huber_floor: The Huber threshold's lowest value (see ``q_regression_loss``)
     :return: The loss, and the mean Q-value of the first critic (detached)
     """
     with th.autocast(actions.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
         outputs = critic.q_outputs(observations, actions)
     q_values = critic.q_values_from_outputs(outputs.float())
     if critic.support is None:
-        total = q_regression_loss(q_values, returns, weights, gather, loss, huber_floor)
+        total = q_regression_loss(q_values, returns, weights, gather, loss)
     else:
         total = (critic.support.cross_entropy(outputs, returns) * weights).sum()
     return total / weight_sum, q_values[0].detach().mean()

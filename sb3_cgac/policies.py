@@ -165,12 +165,7 @@ class Actor(BasePolicy):
 
 
 def check_policy_arguments(
-    action_space: spaces.Space,
-    mean_init_scale: float,
-    n_bins: int | None,
-    value_limit: float | None,
-    n_critics: int,
-    actor_q_reduction: str,
+    action_space: spaces.Space, mean_init_scale: float, n_bins: int | None, n_critics: int, actor_q_reduction: str
 ) -> None:
     """Check the arguments of ``CGACPolicy`` that build its networks (see there); each error names the fix."""
     if not isinstance(action_space, spaces.Box):
@@ -187,14 +182,6 @@ def check_policy_arguments(
         raise ValueError(
             f"CGACPolicy: n_bins must be None (one Q-value per critic) or an integer >= 2 (bins of a categorical "
             f"critic, e.g. 101), got {n_bins!r}."
-        )
-    if value_limit is not None and (
-        n_bins is None or not (isinstance(value_limit, int | float) and 0 < value_limit < math.inf)
-    ):
-        raise ValueError(
-            f"CGACPolicy: value_limit must be None (the categorical critics' symlog support) or a finite number > 0 "
-            f"with n_bins (their bins over [-value_limit, value_limit], e.g. 5 with scale_rewards=True), got "
-            f"value_limit={value_limit!r} with n_bins={n_bins!r}."
         )
     if isinstance(n_critics, bool) or not isinstance(n_critics, int) or n_critics < 1:
         raise ValueError(
@@ -253,9 +240,6 @@ class CGACPolicy(BasePolicy):
     :param n_bins: None: each critic outputs one Q-value (the paper's); a number such as 101: each outputs a
         categorical distribution over that many bins of a fixed symlog support, trained by cross-entropy to the
         targets' HL-Gauss distributions (``sb3_cgac.critics.HistogramSupport``: no per-task range to set)
-    :param value_limit: With ``n_bins``: None, the bins cover returns up to about 22,000 in magnitude on a symlog
-        scale; a number, they spread evenly over ``[-value_limit, value_limit]``, for returns known to lie there
-        (CGAC's ``scale_rewards=True`` keeps them within +-5)
     :param actor_q_reduction: How the actor loss reads the critics: ``"min"``, their minimum (paper Eq. 11), or
         ``"mean"``; the value targets always use the target critics' minimum
     """
@@ -291,7 +275,6 @@ class CGACPolicy(BasePolicy):
         predict_actor: bool = False,
         critic_layer_norm: bool = False,
         n_bins: int | None = None,
-        value_limit: float | None = None,
         actor_q_reduction: str = "min",
     ):
         super().__init__(
@@ -304,7 +287,7 @@ class CGACPolicy(BasePolicy):
             normalize_images=normalize_images,
             squash_output=True,
         )
-        check_policy_arguments(self.action_space, mean_init_scale, n_bins, value_limit, n_critics, actor_q_reduction)
+        check_policy_arguments(self.action_space, mean_init_scale, n_bins, n_critics, actor_q_reduction)
         self.actor_q_reduction = actor_q_reduction
         if net_arch is None:
             net_arch = list(DEFAULT_NET_ARCH)
@@ -344,7 +327,6 @@ class CGACPolicy(BasePolicy):
             "use_xavier_init": use_xavier_init,
             "layer_norm": critic_layer_norm,
             "n_bins": n_bins,
-            "value_limit": value_limit,
         }
         # The action bounds as tensors, for unscale_action_tensor (not saved: the action space gives them)
         assert isinstance(self.action_space, spaces.Box)
@@ -432,7 +414,6 @@ class CGACPolicy(BasePolicy):
                 predict_actor=self.predict_actor,
                 critic_layer_norm=self.critic_kwargs["layer_norm"],
                 n_bins=self.critic_kwargs["n_bins"],
-                value_limit=self.critic_kwargs["value_limit"],
                 actor_q_reduction=self.actor_q_reduction,
             )
         )

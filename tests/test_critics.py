@@ -40,35 +40,6 @@ def test_hl_gauss_targets_beyond_the_support_are_clamped():
     assert symexp(th.tensor(SYMLOG_LIMIT - 0.2)).item() < top <= symexp(th.tensor(SYMLOG_LIMIT)).item()
 
 
-@pytest.mark.parametrize("target", [-4.5, -1.0, -0.03, 0.0, 0.01, 2.5, 4.5])
-def test_linear_support_reads_back_the_target(target):
-    # Over [-5, 5] (scaled returns), 101 bins about 0.1 wide: a target is read back to within a hundredth of a bin
-    support = HistogramSupport(101, limit=5.0)
-    q_value = support.expected_value(support.target_probabilities(th.tensor([target])).log()).item()
-    assert abs(q_value - target) < 1e-3
-    assert (support.centers[1] - support.centers[0]).item() == pytest.approx(10 / 101, rel=1e-5)
-
-
-def test_linear_support_clamps_at_its_limit():
-    support = HistogramSupport(101, limit=5.0)
-    top = support.expected_value(support.target_probabilities(th.tensor([1e6])).log()).item()
-    assert 4.8 < top <= 5.0
-
-
-def test_value_limit_builds_a_linear_support_and_is_saved(tmp_path):
-    model = make_model(n_bins=51, value_limit=5.0)
-    assert not model.critic.support.symlog and model.critic.support.limit == 5.0
-    model.save(tmp_path / "model")
-    loaded = CGAC.load(tmp_path / "model")
-    assert loaded.critic_target.support is not None and loaded.critic_target.support.limit == 5.0
-
-
-@pytest.mark.parametrize("kwargs", [dict(value_limit=5.0), dict(n_bins=51, value_limit=0.0), dict(n_bins=51, value_limit="5")])
-def test_value_limit_needs_bins_and_a_positive_number(kwargs):
-    with pytest.raises(ValueError, match="value_limit must be None"):
-        make_model(**kwargs)
-
-
 def test_layer_norm_and_bins_shape_the_networks():
     model = make_model(critic_layer_norm=True, n_bins=21)
     for critic in (model.critic, model.critic_target):

@@ -56,7 +56,6 @@ POLICY_DEFAULTS_0_2: dict[str, Any] = {
     "normalize_observations": False,
     "critic_layer_norm": False,
     "n_bins": None,
-    "value_limit": None,
     "actor_q_reduction": "min",
 }
 # What replaced an option, for the error message
