@@ -56,10 +56,12 @@ class CriticErrors(BaseCallback):
         sb3_cgac.cgac.critic_loss = self.original_loss
 
     def _on_rollout_start(self) -> None:
+        # The updates that follow a rollout run after its end: print those of the last iteration, then decide for the next
+        self._print_row()
         iteration = self.model.num_timesteps // self.model.n_envs
         self.recording = self.model.num_timesteps >= self.start and (iteration + 1) % self.every == 0
 
-    def _on_rollout_end(self) -> None:
+    def _print_row(self) -> None:
         if not self.batches:
             return
         errors, targets, q_values, pitch, velocity = (th.cat(columns) for columns in zip(*self.batches, strict=True))
@@ -82,7 +84,7 @@ class CriticErrors(BaseCallback):
         return self.model.num_timesteps < self.stop
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="HalfCheetah-v5")
     parser.add_argument("--conf", required=True, help="YAML file whose entry for --env is trained")
@@ -90,7 +92,7 @@ def main() -> None:
     parser.add_argument("--start", type=int, default=0, help="env steps before the first row")
     parser.add_argument("--stop", type=int, required=True, help="env steps at which training stops")
     parser.add_argument("--every", type=int, default=50, help="iterations between rows")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     th.set_num_threads(1)  # one core for the updates, the other for envpool's thread
     model, manager = build_model(
