@@ -66,9 +66,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         SNU humanoid and AllegroHand)
     :param tau: Polyak coefficient of the target critic at every actor update (``"auto"``: 0.02 on a CPU; on a
         GPU the paper's 0.005 per 4096 new transitions, scaled to the number of envs)
-    :param policy_tau: Polyak coefficient of the averaged actor, likewise (``"auto"``: 0.05; paper: 0.001), or a
-        schedule of the remaining progress, read at every iteration (e.g. ``LinearSchedule(0.05, 0.008, 0.5)``;
-        needs ``cuda_graphs=False``)
+    :param policy_tau: Polyak coefficient of the averaged actor, likewise (``"auto"``: 0.05; paper: 0.001)
     :param predict_tau: Polyak coefficient of a third copy of the actor that ``predict()`` acts with (training is
         unchanged); None: ``predict()`` acts with the averaged actor
     :param ent_coef: Entropy coefficient alpha: a float, or ``"auto"`` / ``"auto_<init>"`` to learn it (Eq. 12)
@@ -129,7 +127,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         gae_lambda: float = 0.95,
         gae_horizon: int | None = None,
         tau: float | str = "auto",
-        policy_tau: float | str | Schedule = "auto",
+        policy_tau: float | str = "auto",
         predict_tau: float | None = None,
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
@@ -174,10 +172,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.buffer_window = buffer_window
         self.policy_delay = policy_delay
         self.gae_horizon = gae_horizon
-        # A policy_tau schedule sets policy_tau at every iteration, from its value at the start
-        self.policy_tau_schedule: Schedule | None = policy_tau if callable(policy_tau) else None
-        if callable(policy_tau):
-            policy_tau = float(policy_tau(1.0))
         # What the constructor was given; _setup_model resolves it into batch_size, critic_updates_per_step, tau, policy_tau
         self._requested_update_cost = (batch_size, critic_updates_per_step, tau, policy_tau)
         self.predict_tau = predict_tau
@@ -345,8 +339,6 @@ class CGAC(WindowOnPolicyAlgorithm):
             return  # the window does not hold a minibatch yet
         self.policy.set_training_mode(True)
         learning_rate = self.lr_schedule(self._current_progress_remaining)
-        if self.policy_tau_schedule is not None:
-            self.policy_tau = float(self.policy_tau_schedule(self._current_progress_remaining))
         for name, optimizer in self._optimizers().items():
             # In place: CUDA graphs read it from the same memory
             set_learning_rate(optimizer, LEARNING_RATE_FACTORS[name] * learning_rate)

@@ -16,7 +16,6 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.vec_env import VecEnv
 
 # The paper's minibatch size
@@ -79,7 +78,7 @@ def check_hyperparameters(
     batch_size: int | str,
     critic_updates_per_step: int | str,
     tau: float | str,
-    policy_tau: float | str | Schedule,
+    policy_tau: float | str,
     gae_horizon: int | None,
     predict_tau: float | None,
     predict_actor: bool | None,
@@ -109,23 +108,7 @@ def check_hyperparameters(
     _auto_or("batch_size", batch_size, positive_int)
     _auto_or("critic_updates_per_step", critic_updates_per_step, positive_int)
     _auto_or("tau", tau, _rate)
-    if callable(policy_tau):
-        # A schedule of the remaining progress: its values over the run must be rates; CUDA graphs capture the rate of
-        # the Polyak update once, so a rate that changes needs eager updates
-        for progress in (1.0, 0.0):
-            rate = policy_tau(progress)
-            if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0.0 < rate <= 1.0:
-                raise ValueError(
-                    f"CGAC: the policy_tau schedule gives {rate!r} at progress_remaining={progress}; its values must be "
-                    "rates in (0, 1], e.g. stable_baselines3.common.utils.LinearSchedule(0.05, 0.008, 0.5)."
-                )
-        if cuda_graphs:
-            raise ValueError(
-                "CGAC: a policy_tau schedule changes the averaging rate during training, which CUDA graphs capture as a "
-                "constant; pass cuda_graphs=False or a number for policy_tau."
-            )
-    else:
-        _auto_or("policy_tau", policy_tau, _rate)
+    _auto_or("policy_tau", policy_tau, _rate)
     if gae_horizon is not None:
         positive_int("gae_horizon", gae_horizon)
     if predict_tau is not None:

@@ -5,7 +5,6 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
@@ -136,7 +135,7 @@ def test_progress_schedule_sets_target_entropy():
     model.learn(400, callback=ProgressEntropySchedule())
     assert model.target_entropy_beta == pytest.approx(3.5)
     # The next update targets -beta * |A|
-    model.train()  # one actor update
+    model.train()
     assert model.logger.name_to_value["train/target_entropy"] == pytest.approx(-3.5 * 2)
 
 
@@ -254,21 +253,3 @@ def test_auto_values_are_resolved_on_the_model(tmp_path):
     model.save(tmp_path / "model")
     loaded = CGAC.load(tmp_path / "model", env=make_vec_env(ConstantRewardEnv, n_envs=16))
     assert (loaded.batch_size, loaded.critic_updates_per_step, loaded.tau, loaded.policy_tau) == (512, 4, 0.02, 0.05)
-
-
-def test_policy_tau_schedule(tmp_path):
-    """A policy_tau schedule sets the averaged actor's rate at every iteration, logged, and survives save/load."""
-    env = make_vec_env(ConstantRewardEnv, n_envs=8, seed=0)
-    model = CGAC("MlpPolicy", env, critic_updates_per_step=2, policy_tau=LinearSchedule(0.5, 0.1, 0.5), **SMALL)
-    assert model.policy_tau == pytest.approx(0.5)  # its value at the start
-    model.learn(800)  # 100 iterations
-    assert model.policy_tau == pytest.approx(0.1)  # past end_fraction
-    assert model.logger.name_to_value["train/policy_tau"] == pytest.approx(0.1)
-    avg_before = snapshot(model.actor_avg)
-    model._current_progress_remaining = 0.75  # halfway to end_fraction: 0.3
-    model.train()  # one actor update
-    for before, actor, avg in zip(avg_before, model.actor.parameters(), model.actor_avg.parameters(), strict=True):
-        assert th.allclose(avg, 0.7 * before + 0.3 * actor, atol=1e-6)
-    model.save(tmp_path / "model.zip")
-    loaded = CGAC.load(tmp_path / "model.zip", env=env)
-    assert loaded.policy_tau == pytest.approx(0.3) and loaded.policy_tau_schedule(0.25) == pytest.approx(0.1)

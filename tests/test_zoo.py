@@ -61,7 +61,6 @@ def test_yaml_callback_and_cgac_keys(tmp_path):
     entry.update(
         n_envs=8,
         learning_rate="lin_2e-3_1e-4_0.5",
-        policy_tau="lin_0.05_0.01_0.5",
         gae_horizon=4,
         callback=[{"sb3_cgac.callbacks.ProgressEntropySchedule": {"beta_init": 0.5, "beta_final": 2.5}}],
     )
@@ -72,7 +71,6 @@ def test_yaml_callback_and_cgac_keys(tmp_path):
     assert model.target_entropy_beta == pytest.approx(2.5)  # the schedule ran to its end
     assert model.lr_schedule(0.75) == pytest.approx(2e-3 + 0.5 * (1e-4 - 2e-3)) and model.gae_horizon == 4
     assert model.lr_schedule(0.25) == pytest.approx(1e-4)
-    assert model.policy_tau == pytest.approx(0.01) and model.policy_tau_schedule(0.75) == pytest.approx(0.03)
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])

@@ -37,8 +37,6 @@ HYPERPARAMS_DIR = Path(str(importlib.resources.files("sb3_cgac.hyperparams")))
 ADAPTER_BACKENDS = ("envpool", "gymnasium", "gymnasium_async", "gymnasium_torch", "playground", "mjlab")
 # Keys turned into schedules (the zoo's own)
 SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf", "delta_std")
-# CGAC's keys that take a schedule as well as a number or "auto" (a number stays a number)
-RATE_SCHEDULE_KEYS = ("policy_tau",)
 
 
 def parse_schedule(key: str, value: str) -> Callable[[float], float]:
@@ -107,8 +105,7 @@ class CGACExperimentManager(ExperimentManager):
     rl_zoo3's ``ExperimentManager`` with three additions: ``backend`` builds the training and evaluation envs with
     ``sb3_cgac.vec_env.make_vec_env`` (the zoo's normalization, frame stacking and VecEnv wrappers still apply),
     schedules also take the form ``lin_<start>_<end>_<end_fraction>`` (SB3's ``LinearSchedule``: linear from start to
-    end over that fraction of ``n_timesteps``, then constant; the authors' learning-rate decay), as CGAC's
-    ``policy_tau`` does, and the YAML key
+    end over that fraction of ``n_timesteps``, then constant; the authors' learning-rate decay), and the YAML key
     ``random_first_episode: true`` cuts the first episode of every training env at a random length (with any backend;
     evaluation envs are left alone).
 
@@ -147,10 +144,6 @@ class CGACExperimentManager(ExperimentManager):
                 hyperparams[key] = parse_schedule(key, value)
             elif isinstance(value, (float, int)) and value >= 0:
                 hyperparams[key] = ConstantSchedule(float(value))
-        for key in RATE_SCHEDULE_KEYS:
-            value = hyperparams.get(key)
-            if isinstance(value, str) and value != "auto":
-                hyperparams[key] = parse_schedule(key, value)
         return hyperparams
 
     def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
