@@ -5,7 +5,7 @@ from stable_baselines3.common.logger import configure as configure_logger
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule, TensorDict
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TensorDict
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_cgac.buffers import CGACRolloutBuffer, CGACSamples
@@ -21,13 +21,12 @@ from sb3_cgac.hyperparameters import (
     check_hyperparameters,
     episode_horizon,
     horizon_gamma,
-    kl_adapted_learning_rate,
     parse_ent_coef,
     resolve_auto_hyperparameters,
     resolve_update_precision,
     warn_few_envs,
 )
-from sb3_cgac.losses import actor_loss, critic_loss, gaussian_kl, update_log_ent_coef
+from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.return_scale import ReturnScale
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
@@ -70,10 +69,6 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param policy_tau: Polyak coefficient of the averaged actor, likewise (``"auto"``: 0.05; paper: 0.001)
     :param predict_tau: Polyak coefficient of a third copy of the actor that ``predict()`` acts with (training is
         unchanged); None: ``predict()`` acts with the averaged actor
-    :param target_kl: KL divergence per iteration that the actor's learning rate adapts to (rsl_rl's adaptive
-        schedule): divided by 1.5 after an iteration whose ``KL(actor before || after)`` on its first minibatch is above
-        twice ``target_kl``, multiplied by 1.5 below half of it, within [1e-5, 1e-2], starting from the initial
-        ``learning_rate``; the critics and alpha keep ``learning_rate``. None: the actor follows ``learning_rate``
     :param ent_coef: Entropy coefficient alpha: a float, or ``"auto"`` / ``"auto_<init>"`` to learn it (Eq. 12)
     :param target_entropy_beta: beta of the target entropy ``-beta * |A|`` (Eq. 12); the entropy schedules of
         ``sb3_cgac.callbacks`` (Eq. 13) change it during training
@@ -134,7 +129,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         tau: float | str = "auto",
         policy_tau: float | str = "auto",
         predict_tau: float | None = None,
-        target_kl: float | None = None,
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
@@ -181,8 +175,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         # What the constructor was given; _setup_model resolves it into batch_size, critic_updates_per_step, tau, policy_tau
         self._requested_update_cost = (batch_size, critic_updates_per_step, tau, policy_tau)
         self.predict_tau = predict_tau
-        self.target_kl = target_kl
-        self.actor_learning_rate: float | None = None  # with target_kl: the adapted rate, set by _setup_model
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
         self.scale_rewards = scale_rewards
@@ -212,8 +204,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         # The policy's defaults when the model was made: a later release's defaults do not change a saved model
         self.policy_defaults = upgrade_saved_defaults(self.__dict__, self.policy_class)
         self._setup_lr_schedule()
-        if self.target_kl is not None and self.actor_learning_rate is None:  # a loaded model keeps its adapted rate
-            self.actor_learning_rate = float(self.lr_schedule(1.0))
         self.set_random_seed(self.seed)
         # "auto" becomes the numbers for this device and env count. A loaded model keeps the numbers it was saved with:
         # SB3's load() sets them before it calls this method
@@ -290,12 +280,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         """The entropy coefficient alpha, on the device (no host sync)."""
         return self.ent_coef_tensor if self.log_ent_coef is None else th.exp(self.log_ent_coef.detach())
 
-    @th.no_grad()
-    def _actor_distribution(self, observations: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
-        """The trained actor's Gaussian (mean and log std, before the tanh) on ``observations``."""
-        mean, log_std = self.actor.get_action_dist_params(observations)
-        return mean, log_std.expand_as(mean)
-
     def _critic_update(self, data: CGACSamples) -> dict[str, th.Tensor]:
         """One critic update (paper Eq. 8) on a minibatch; returns its statistics by name."""
         weight_sum = data.weights.sum().clamp_min(1.0)
@@ -356,10 +340,8 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.policy.set_training_mode(True)
         learning_rate = self.lr_schedule(self._current_progress_remaining)
         for name, optimizer in self._optimizers().items():
-            rate = LEARNING_RATE_FACTORS[name] * learning_rate
-            if name == "actor" and self.actor_learning_rate is not None:
-                rate = self.actor_learning_rate
-            set_learning_rate(optimizer, rate)  # in place: CUDA graphs read it from the same memory
+            # In place: CUDA graphs read it from the same memory
+            set_learning_rate(optimizer, LEARNING_RATE_FACTORS[name] * learning_rate)
         if self._parallel is not None:  # an entropy schedule that follows each rank's rewards: one target for all
             self.target_entropy_beta = self._parallel.mean_float(self.target_entropy_beta)
         target_entropy = -self.target_entropy_beta * float(get_action_dim(self.action_space))
@@ -369,14 +351,8 @@ class CGAC(WindowOnPolicyAlgorithm):
         # alpha and the averaged copies
         critic_update, actor_update = self._update_graphs.steps()
         statistics = []
-        kl_observations, policy_before = None, None
         for _ in range(self.critic_updates_per_step * self.n_steps):
             minibatch = self.rollout_buffer.sample(self.batch_size)
-            if self.target_kl is not None and kl_observations is None:  # the policy before the updates, for target_kl
-                # A copy: CUDA graphs' minibatches live in buffers that the next sample overwrites
-                obs = minibatch.observations
-                kl_observations = {key: value.clone() for key, value in obs.items()} if isinstance(obs, dict) else obs.clone()
-                policy_before = self._actor_distribution(kl_observations)
             statistics.append(critic_update(minibatch))
             self._n_updates += 1
             if self._n_updates % self.policy_delay == 0:
@@ -388,14 +364,8 @@ class CGAC(WindowOnPolicyAlgorithm):
         scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": th.exp(self.actor.log_std.detach()).mean()}
         if self.return_scale is not None:
             scalars["reward_scale"] = self.return_scale.scale()
-        if kl_observations is not None and policy_before is not None:
-            scalars["kl"] = gaussian_kl(policy_before, self._actor_distribution(kl_observations))
         stats = read_statistics(scalars, statistics)
         check_finite_parameters(bool(stats.pop("finite")), self._n_updates)
-        if self.target_kl is not None and self.actor_learning_rate is not None and "kl" in stats:
-            kl = self._parallel.mean_float(stats["kl"]) if self._parallel is not None else stats["kl"]
-            stats["actor_learning_rate"] = self.actor_learning_rate  # the rate of this iteration's updates
-            self.actor_learning_rate = kl_adapted_learning_rate(self.actor_learning_rate, kl, self.target_kl)
         stats.update(target_entropy=target_entropy, beta=self.target_entropy_beta, tau=self.tau, policy_tau=self.policy_tau)
         stats.update(learning_rate=learning_rate)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

@@ -41,10 +41,6 @@ FEW_ENVS = 16
 ENT_COEF_CLAMPS = (True, False, "above_target")
 # Precision of the networks in the updates ("auto": see ``resolve_update_precision``)
 UPDATE_PRECISIONS = ("auto", "float32", "bfloat16")
-# target_kl: rsl_rl's adaptive learning rate (its PPO's schedule="adaptive"): divided or multiplied by this factor when
-# the KL of an iteration is above twice or below half the target, within these bounds
-KL_LEARNING_RATE_FACTOR = 1.5
-KL_LEARNING_RATE_BOUNDS = (1e-5, 1e-2)
 # gamma="auto": the discount from the episodes' time limit (TD-MPC2's rule), within this range; without a time limit
 # the paper's 0.99
 HORIZON_GAMMA_RANGE = (0.95, 0.995)
@@ -85,7 +81,6 @@ def check_hyperparameters(
     policy_tau: float | str,
     gae_horizon: int | None,
     predict_tau: float | None,
-    target_kl: float | None,
     predict_actor: bool | None,
     gamma: float | str,
     gae_lambda: float,
@@ -118,8 +113,6 @@ def check_hyperparameters(
         positive_int("gae_horizon", gae_horizon)
     if predict_tau is not None:
         _rate("predict_tau", predict_tau, "None")
-    if target_kl is not None and (isinstance(target_kl, bool) or not isinstance(target_kl, (int, float)) or target_kl <= 0):
-        raise ValueError(f"CGAC: target_kl must be None or a number > 0, got {target_kl!r}.")
     if predict_actor is not None and predict_actor != (predict_tau is not None):
         raise ValueError(
             f"CGAC: policy_kwargs has predict_actor={predict_actor!r} but predict_tau is {predict_tau!r}: the copy "
@@ -324,24 +317,6 @@ def resolve_auto_hyperparameters(
     updates = resolve_critic_updates_per_step(critic_updates_per_step, n_envs, batch_size, device)
     tau, policy_tau = resolve_polyak_rates(tau, policy_tau, n_envs, policy_delay, updates, device)
     return UpdateCost(batch_size, updates, tau, policy_tau)
-
-
-def kl_adapted_learning_rate(learning_rate: float, kl: float, target_kl: float) -> float:
-    """
-    rsl_rl's adaptive learning rate: lower it when an iteration's KL is above twice ``target_kl``, raise it when below
-    half, within ``KL_LEARNING_RATE_BOUNDS``.
-
-    :param learning_rate: The current learning rate
-    :param kl: The KL divergence between the policy before and after the iteration's updates
-    :param target_kl: The KL aimed at
-    :return: The learning rate of the next iteration
-    """
-    if kl > 2.0 * target_kl:
-        learning_rate /= KL_LEARNING_RATE_FACTOR
-    elif kl < 0.5 * target_kl:
-        learning_rate *= KL_LEARNING_RATE_FACTOR
-    low, high = KL_LEARNING_RATE_BOUNDS
-    return min(max(learning_rate, low), high)
 
 
 def native_bfloat16(device: th.device) -> bool:

@@ -110,21 +110,6 @@ def actor_loss(
     return loss, log_prob.detach()
 
 
-def gaussian_kl(before: tuple[th.Tensor, th.Tensor], after: tuple[th.Tensor, th.Tensor]) -> th.Tensor:
-    """
-    ``KL(before || after)`` of the actor's diagonal Gaussians before the tanh (the tanh does not change a KL), summed
-    over the action dimensions and averaged over the observations.
-
-    :param before: Mean and log standard deviation of the first distribution (``Actor.get_action_dist_params``)
-    :param after: Those of the second
-    :return: The mean KL divergence
-    """
-    (mean0, log_std0), (mean1, log_std1) = before, after
-    variance_ratio = th.exp(2 * (log_std0 - log_std1))
-    kl = log_std1 - log_std0 + 0.5 * (variance_ratio + (mean0 - mean1) ** 2 * th.exp(-2 * log_std1) - 1)
-    return kl.sum(dim=-1).mean()
-
-
 def clamped_log_ent_coef(
     log_ent_coef: th.Tensor, previous: th.Tensor, entropy_gap: th.Tensor, mode: bool | str = "above_target"
 ) -> th.Tensor:

@@ -72,7 +72,6 @@ def test_unbounded_box():
         (dict(update_precision="float16"), r"update_precision 'float16'; choose one of \('auto', 'float32', 'bfloat16'\)"),
         (dict(cuda_graphs="yes"), "cuda_graphs must be True or False"),
         (dict(predict_tau=0.0), r"predict_tau must be None or in \(0, 1\]"),
-        (dict(target_kl=0.0), "target_kl must be None or a number > 0"),
         (dict(policy_kwargs=dict(predict_actor=True)), "predict_actor=True but predict_tau is None"),
         (dict(predict_tau=0.01, policy_kwargs=dict(predict_actor=False)), "predict_actor=False but predict_tau is 0.01"),
         (dict(policy_kwargs=dict(mean_init_scale=-0.01)), "mean_init_scale must be a finite number >= 0"),

@@ -5,17 +5,10 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
-from sb3_cgac.hyperparameters import (
-    kl_adapted_learning_rate,
-    resolve_batch_size,
-    resolve_critic_updates_per_step,
-    resolve_polyak_rates,
-)
-from sb3_cgac.losses import gaussian_kl
+from sb3_cgac.hyperparameters import resolve_batch_size, resolve_critic_updates_per_step, resolve_polyak_rates
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 
@@ -260,43 +253,3 @@ def test_auto_values_are_resolved_on_the_model(tmp_path):
     model.save(tmp_path / "model")
     loaded = CGAC.load(tmp_path / "model", env=make_vec_env(ConstantRewardEnv, n_envs=16))
     assert (loaded.batch_size, loaded.critic_updates_per_step, loaded.tau, loaded.policy_tau) == (512, 4, 0.02, 0.05)
-
-
-def test_gaussian_kl_matches_torch():
-    gen = th.Generator().manual_seed(0)
-    mean0, mean1 = th.randn(5, 3, generator=gen), th.randn(5, 3, generator=gen)
-    log_std0, log_std1 = 0.3 * th.randn(5, 3, generator=gen), 0.3 * th.randn(5, 3, generator=gen)
-    p, q = th.distributions.Normal(mean0, log_std0.exp()), th.distributions.Normal(mean1, log_std1.exp())
-    expected = th.distributions.kl_divergence(p, q).sum(-1).mean()
-    assert gaussian_kl((mean0, log_std0), (mean1, log_std1)) == pytest.approx(float(expected), rel=1e-5)
-    assert gaussian_kl((mean0, log_std0), (mean0, log_std0)) == pytest.approx(0.0, abs=1e-7)
-
-
-def test_kl_adapted_learning_rate():
-    assert kl_adapted_learning_rate(1e-3, kl=0.05, target_kl=0.01) == pytest.approx(1e-3 / 1.5)
-    assert kl_adapted_learning_rate(1e-3, kl=0.001, target_kl=0.01) == pytest.approx(1.5e-3)
-    assert kl_adapted_learning_rate(1e-3, kl=0.01, target_kl=0.01) == 1e-3  # within [0.5, 2] x the target
-    assert kl_adapted_learning_rate(1e-2, kl=0.0, target_kl=0.01) == 1e-2  # bounds
-    assert kl_adapted_learning_rate(1e-5, kl=1.0, target_kl=0.01) == 1e-5
-
-
-@pytest.mark.parametrize("target_kl, direction", [(1e-12, -1), (1e3, 1)])
-def test_target_kl_adapts_the_actor_learning_rate(tmp_path, target_kl, direction):
-    env = make_vec_env(ConstantRewardEnv, n_envs=8, seed=0)
-    model = CGAC("MlpPolicy", env, learning_rate=LinearSchedule(1e-3, 5e-4, 1.0), target_kl=target_kl, **SMALL)
-    assert model.actor_learning_rate == pytest.approx(1e-3)
-    model.learn(400)
-    logged = model.logger.name_to_value
-    assert logged["train/kl"] > 0 and np.sign(model.actor_learning_rate - 1e-3) == direction
-    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(logged["train/actor_learning_rate"])
-    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(logged["train/learning_rate"])  # the schedule
-    model.save(tmp_path / "model.zip")
-    loaded = CGAC.load(tmp_path / "model.zip", env=env)
-    assert loaded.target_kl == target_kl and loaded.actor_learning_rate == model.actor_learning_rate
-
-
-def test_without_target_kl_the_actor_follows_the_schedule():
-    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), **SMALL)
-    model.learn(400)
-    assert model.actor_learning_rate is None and "train/kl" not in model.logger.name_to_value
-    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(model.logger.name_to_value["train/learning_rate"])
