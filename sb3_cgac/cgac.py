@@ -361,7 +361,7 @@ class CGAC(WindowOnPolicyAlgorithm):
 
         # One read from the device per iteration (no host sync inside the update loop): finiteness and statistics
         finite = self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef]))
-        scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": th.exp(self.actor.log_std.detach()).mean()}
+        scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": self.actor.mean_std(self.rollout_buffer.current_obs)}
         if self.return_scale is not None:
             scalars["reward_scale"] = self.return_scale.scale()
         stats = read_statistics(scalars, statistics)

@@ -52,10 +52,13 @@ class Actor(BasePolicy):
     :param log_std_init: Initial value of the log standard deviation
     :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
     :param mean_init_scale: Factor on the initial weights and bias of the layer that outputs the Gaussian's mean
+    :param state_dependent_std: Whether the log standard deviation is a head of the network (SAC's) instead of a
+        learnable state-independent vector (the paper's code)
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
     """
 
     action_space: spaces.Box
+    log_std: nn.Linear | nn.Parameter
 
     def __init__(
         self,
@@ -68,6 +71,7 @@ class Actor(BasePolicy):
         log_std_init: float = -1.0,
         use_xavier_init: bool = True,
         mean_init_scale: float = 1.0,
+        state_dependent_std: bool = False,
         normalize_images: bool = True,
     ):
         super().__init__(
@@ -83,15 +87,22 @@ class Actor(BasePolicy):
         self.log_std_init = log_std_init
         self.use_xavier_init = use_xavier_init
         self.mean_init_scale = mean_init_scale
+        self.state_dependent_std = state_dependent_std
 
         action_dim = get_action_dim(self.action_space)
         self.latent_pi = nn.Sequential(*create_mlp(features_dim, -1, net_arch, activation_fn))
         last_layer_dim = net_arch[-1] if len(net_arch) > 0 else features_dim
         self.mu = nn.Linear(last_layer_dim, action_dim)
-        # A learnable state-independent log standard deviation (the paper's code)
-        self.log_std = nn.Parameter(th.full((action_dim,), float(log_std_init)))
+        if state_dependent_std:
+            self.log_std = nn.Linear(last_layer_dim, action_dim)
+        else:  # a learnable state-independent log standard deviation (the paper's code)
+            self.log_std = nn.Parameter(th.full((action_dim,), float(log_std_init)))
         if use_xavier_init:
             xavier_init(self)
+        if isinstance(self.log_std, nn.Linear):
+            # Start from log_std_init in every state; the head learns where to spread the entropy
+            nn.init.zeros_(self.log_std.weight)
+            nn.init.constant_(self.log_std.bias, float(log_std_init))
         if mean_init_scale != 1.0:
             # A small factor starts from near-zero mean actions whatever the observation (SB3's PPO scales its action
             # head by 0.01 for the same reason): the untrained deterministic policy is then the env's "do nothing".
@@ -110,6 +121,7 @@ class Actor(BasePolicy):
                 log_std_init=self.log_std_init,
                 use_xavier_init=self.use_xavier_init,
                 mean_init_scale=self.mean_init_scale,
+                state_dependent_std=self.state_dependent_std,
                 features_extractor=self.features_extractor,
             )
         )
@@ -122,7 +134,19 @@ class Actor(BasePolicy):
         """
         latent_pi = self.latent_pi(self.extract_features(obs, self.features_extractor))
         mean_actions = self.mu(latent_pi)
-        return mean_actions, th.clamp(self.log_std, LOG_STD_MIN, LOG_STD_MAX)
+        log_std = self.log_std(latent_pi) if isinstance(self.log_std, nn.Linear) else self.log_std
+        return mean_actions, th.clamp(log_std, LOG_STD_MIN, LOG_STD_MAX)
+
+    @th.no_grad()
+    def mean_std(self, obs: PyTorchObs) -> th.Tensor:
+        """
+        :param obs: Observations (read only with ``state_dependent_std``)
+        :return: The Gaussian's standard deviation before the tanh squashing, averaged over the action dimensions
+            (and over ``obs``)
+        """
+        if isinstance(self.log_std, nn.Linear):
+            return self.get_action_dist_params(obs)[1].exp().mean()
+        return th.clamp(self.log_std, LOG_STD_MIN, LOG_STD_MAX).exp().mean()
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         mean_actions, log_std = self.get_action_dist_params(obs)
@@ -218,6 +242,9 @@ class CGACPolicy(BasePolicy):
     :param mean_init_scale: Factor on the initial weights of the actor's mean layer: 1 keeps the initialisation
         above; a small value such as 0.01 makes the untrained actor's mean actions near zero, so that it starts from
         the env's "do nothing" (an Ant that stands rather than one that falls) instead of an arbitrary posture
+    :param state_dependent_std: Whether the actor's log standard deviation is a head of its network (SAC's), so that
+        the entropy target (Eq. 12) bounds the average entropy and the actor spreads it over the states, instead of
+        a learnable state-independent vector (the paper's code)
     :param features_extractor_class: Features extractor to use
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
@@ -262,6 +289,7 @@ class CGACPolicy(BasePolicy):
         log_std_init: float = -1.0,
         use_xavier_init: bool = True,
         mean_init_scale: float = 1.0,
+        state_dependent_std: bool = False,
         features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
         features_extractor_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = True,
@@ -318,6 +346,7 @@ class CGACPolicy(BasePolicy):
             "log_std_init": log_std_init,
             "use_xavier_init": use_xavier_init,
             "mean_init_scale": mean_init_scale,
+            "state_dependent_std": state_dependent_std,
         }
         self.critic_kwargs = {
             **net_args,
@@ -401,6 +430,7 @@ class CGACPolicy(BasePolicy):
                 log_std_init=self.actor_kwargs["log_std_init"],
                 use_xavier_init=self.use_xavier_init,
                 mean_init_scale=self.actor_kwargs["mean_init_scale"],
+                state_dependent_std=self.actor_kwargs["state_dependent_std"],
                 lr_schedule=self._dummy_schedule,  # not needed to load the policy alone
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
