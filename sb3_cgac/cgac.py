@@ -361,7 +361,7 @@ class CGAC(WindowOnPolicyAlgorithm):
 
         # One read from the device per iteration (no host sync inside the update loop): finiteness and statistics
         finite = self.policy.parameters_finite(*([] if self.log_ent_coef is None else [self.log_ent_coef]))
-        scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": self.actor.mean_std(self.rollout_buffer.current_obs)}
+        scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": self.actor.clamped_log_std().detach().exp().mean()}
         if self.return_scale is not None:
             scalars["reward_scale"] = self.return_scale.scale()
         stats = read_statistics(scalars, statistics)

@@ -255,19 +255,17 @@ def test_auto_values_are_resolved_on_the_model(tmp_path):
     assert (loaded.batch_size, loaded.critic_updates_per_step, loaded.tau, loaded.policy_tau) == (512, 4, 0.02, 0.05)
 
 
-def test_state_dependent_std(tmp_path):
-    """SAC's std head: starts at log_std_init in every state, learns a std that differs between states, and is saved."""
-    kwargs = dict(policy_kwargs=dict(net_arch=[16, 16], state_dependent_std=True, log_std_init=-0.5), seed=0)
+def test_log_std_floor(tmp_path):
+    """An exploration floor: the std starts at it (log_std_init below it) and stays there however low the target."""
+    floor = np.log(0.5)
+    kwargs = dict(policy_kwargs=dict(net_arch=[16, 16], log_std_min=floor), target_entropy_beta=5.0, seed=0)
     model = CGAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=4, seed=0), **kwargs)
-    obs = th.as_tensor(np.random.default_rng(0).uniform(-1, 1, (64, 3)), dtype=th.float32)
-    _, log_std = model.actor.get_action_dist_params(obs)
-    assert th.allclose(log_std, th.full_like(log_std, -0.5))
-    model.learn(600)
-    _, log_std = model.actor.get_action_dist_params(obs)
-    assert log_std.std() > 0  # the std now depends on the state
-    logged = model.logger.name_to_value["train/std"]
-    assert logged == pytest.approx(float(model.actor.mean_std(model.rollout_buffer.current_obs)))
+    assert model.actor.log_std.detach() == pytest.approx(floor)  # log_std_init -1 is below the floor
+    model.learn(800)
+    assert (model.actor.log_std.detach() < floor).any()  # a target of -5 nats pushed the parameter under the floor
+    for actor in (model.actor, model.actor_avg):
+        _, log_std = actor.get_action_dist_params(th.zeros(8, 3))
+        assert (log_std >= floor - 1e-6).all()
+    assert model.logger.name_to_value["train/std"] == pytest.approx(0.5, abs=1e-4)
     model.save(tmp_path / "model")
-    loaded = CGAC.load(tmp_path / "model")
-    assert isinstance(loaded.actor.log_std, th.nn.Linear)
-    th.testing.assert_close(loaded.actor.get_action_dist_params(obs)[1], log_std)
+    assert CGAC.load(tmp_path / "model").actor.log_std_min == pytest.approx(floor)
