@@ -52,7 +52,6 @@ class Actor(BasePolicy):
     :param log_std_init: Initial value of the log standard deviation
     :param use_xavier_init: Whether to use Xavier-uniform weights and zero biases (the paper's code)
     :param mean_init_scale: Factor on the initial weights and bias of the layer that outputs the Gaussian's mean
-    :param log_std_min: Floor of the log standard deviation (SAC's cap, -20, by default)
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
     """
 
@@ -69,7 +68,6 @@ class Actor(BasePolicy):
         log_std_init: float = -1.0,
         use_xavier_init: bool = True,
         mean_init_scale: float = 1.0,
-        log_std_min: float = LOG_STD_MIN,
         normalize_images: bool = True,
     ):
         super().__init__(
@@ -85,15 +83,13 @@ class Actor(BasePolicy):
         self.log_std_init = log_std_init
         self.use_xavier_init = use_xavier_init
         self.mean_init_scale = mean_init_scale
-        self.log_std_min = log_std_min
 
         action_dim = get_action_dim(self.action_space)
         self.latent_pi = nn.Sequential(*create_mlp(features_dim, -1, net_arch, activation_fn))
         last_layer_dim = net_arch[-1] if len(net_arch) > 0 else features_dim
         self.mu = nn.Linear(last_layer_dim, action_dim)
-        # A learnable state-independent log standard deviation (the paper's code); it starts at or above its floor, where
-        # the clamp passes gradients
-        self.log_std = nn.Parameter(th.full((action_dim,), float(max(log_std_init, log_std_min))))
+        # A learnable state-independent log standard deviation (the paper's code)
+        self.log_std = nn.Parameter(th.full((action_dim,), float(log_std_init)))
         if use_xavier_init:
             xavier_init(self)
         if mean_init_scale != 1.0:
@@ -114,7 +110,6 @@ class Actor(BasePolicy):
                 log_std_init=self.log_std_init,
                 use_xavier_init=self.use_xavier_init,
                 mean_init_scale=self.mean_init_scale,
-                log_std_min=self.log_std_min,
                 features_extractor=self.features_extractor,
             )
         )
@@ -127,11 +122,7 @@ class Actor(BasePolicy):
         """
         latent_pi = self.latent_pi(self.extract_features(obs, self.features_extractor))
         mean_actions = self.mu(latent_pi)
-        return mean_actions, self.clamped_log_std()
-
-    def clamped_log_std(self) -> th.Tensor:
-        """:return: The log standard deviation of the Gaussian before the tanh squashing, within its bounds"""
-        return th.clamp(self.log_std, self.log_std_min, LOG_STD_MAX)
+        return mean_actions, th.clamp(self.log_std, LOG_STD_MIN, LOG_STD_MAX)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         mean_actions, log_std = self.get_action_dist_params(obs)
@@ -174,12 +165,7 @@ class Actor(BasePolicy):
 
 
 def check_policy_arguments(
-    action_space: spaces.Space,
-    mean_init_scale: float,
-    n_bins: int | None,
-    n_critics: int,
-    actor_q_reduction: str,
-    log_std_min: float,
+    action_space: spaces.Space, mean_init_scale: float, n_bins: int | None, n_critics: int, actor_q_reduction: str
 ) -> None:
     """Check the arguments of ``CGACPolicy`` that build its networks (see there); each error names the fix."""
     if not isinstance(action_space, spaces.Box):
@@ -204,12 +190,6 @@ def check_policy_arguments(
         )
     if actor_q_reduction not in ("min", "mean"):
         raise ValueError(f"CGACPolicy: actor_q_reduction must be 'min' or 'mean', got {actor_q_reduction!r}.")
-    number = isinstance(log_std_min, int | float) and not isinstance(log_std_min, bool)
-    if not (number and LOG_STD_MIN <= log_std_min < LOG_STD_MAX):
-        raise ValueError(
-            f"CGACPolicy: log_std_min must be in [{LOG_STD_MIN}, {LOG_STD_MAX}) (a floor of the actor's log standard "
-            f"deviation, e.g. math.log(0.5)), got {log_std_min}."
-        )
 
 
 def make_obs_normalizer(observation_space: spaces.Space) -> ObsNormalizer:
@@ -238,8 +218,6 @@ class CGACPolicy(BasePolicy):
     :param mean_init_scale: Factor on the initial weights of the actor's mean layer: 1 keeps the initialisation
         above; a small value such as 0.01 makes the untrained actor's mean actions near zero, so that it starts from
         the env's "do nothing" (an Ant that stands rather than one that falls) instead of an arbitrary posture
-    :param log_std_min: Floor of the actor's log standard deviation: an exploration floor that the entropy
-        target (Eq. 12) cannot go below (default: SAC's cap, -20, no floor in practice)
     :param features_extractor_class: Features extractor to use
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
@@ -284,7 +262,6 @@ class CGACPolicy(BasePolicy):
         log_std_init: float = -1.0,
         use_xavier_init: bool = True,
         mean_init_scale: float = 1.0,
-        log_std_min: float = LOG_STD_MIN,
         features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
         features_extractor_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = True,
@@ -310,7 +287,7 @@ class CGACPolicy(BasePolicy):
             normalize_images=normalize_images,
             squash_output=True,
         )
-        check_policy_arguments(self.action_space, mean_init_scale, n_bins, n_critics, actor_q_reduction, log_std_min)
+        check_policy_arguments(self.action_space, mean_init_scale, n_bins, n_critics, actor_q_reduction)
         self.actor_q_reduction = actor_q_reduction
         if net_arch is None:
             net_arch = list(DEFAULT_NET_ARCH)
@@ -341,7 +318,6 @@ class CGACPolicy(BasePolicy):
             "log_std_init": log_std_init,
             "use_xavier_init": use_xavier_init,
             "mean_init_scale": mean_init_scale,
-            "log_std_min": log_std_min,
         }
         self.critic_kwargs = {
             **net_args,
@@ -425,7 +401,6 @@ class CGACPolicy(BasePolicy):
                 log_std_init=self.actor_kwargs["log_std_init"],
                 use_xavier_init=self.use_xavier_init,
                 mean_init_scale=self.actor_kwargs["mean_init_scale"],
-                log_std_min=self.actor_kwargs["log_std_min"],
                 lr_schedule=self._dummy_schedule,  # not needed to load the policy alone
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,

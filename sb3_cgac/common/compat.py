@@ -50,7 +50,6 @@ POLICY_DEFAULTS_0_2: dict[str, Any] = {
     "log_std_init": -1.0,
     "use_xavier_init": True,
     "mean_init_scale": 1.0,
-    "log_std_min": -20,
     "normalize_images": True,
     "n_critics": 2,
     "share_features_extractor": False,
