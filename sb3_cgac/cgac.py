@@ -75,9 +75,6 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param ent_coef_monotone: Clamp of the learned alpha (Sec. 4.2): ``"above_target"`` keeps it from rising while
         the entropy is at or above its target; ``True`` is the paper's ``alpha = min(alpha_prev, alpha_new)``;
         ``False`` leaves it free (SAC)
-    :param ent_coef_max: Upper bound of the learned alpha (None: none), so that the entropy bonus cannot outweigh the
-        critics' gradient when the target entropy is out of reach (saturated actions); with ``scale_rewards`` alpha
-        weighs entropy against scaled rewards, so one bound fits tasks of any reward scale
     :param scale_rewards: Divide the rewards the critics learn from by ``max(std(G), max|G| / 5)`` of the envs'
         running discounted returns ``G`` (SimbaV2's scaling), so that their targets sit in a fixed range whatever the
         reward scale; the statistics are saved with the model, and the callbacks and logs see the env's rewards
@@ -135,7 +132,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
-        ent_coef_max: float | None = None,
         scale_rewards: bool = False,
         critic_loss: str = "huber",
         max_grad_norm: float = 20.0,
@@ -181,7 +177,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.predict_tau = predict_tau
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
-        self.ent_coef_max = ent_coef_max
         self.scale_rewards = scale_rewards
         self.critic_loss = critic_loss
         self.update_precision = update_precision
@@ -251,7 +246,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         learn_alpha, init_alpha = parse_ent_coef(self.ent_coef)
         if learn_alpha:
             # Optimise log(alpha), as SB3's SAC does
-            init_alpha = min(init_alpha, self.ent_coef_max or init_alpha)
             self.log_ent_coef = th.log(th.ones(1, device=self.device) * init_alpha).requires_grad_(True)
             lr = LEARNING_RATE_FACTORS["ent_coef"] * self.lr_schedule(1)
             self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=lr, fused=True)
@@ -329,7 +323,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         statistics = {"actor_loss": loss.detach(), "actor_grad_norm": grad_norm}
         statistics["entropy"] = -(log_prob * data.weights).sum() / weight_sum
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-            alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone, self.ent_coef_max)
+            alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
             average = self._parallel.mean if self._parallel is not None else None
             statistics["ent_coef_loss"] = update_log_ent_coef(
                 self.log_ent_coef, self.ent_coef_optimizer, *alpha_args, average=average

@@ -87,7 +87,6 @@ def check_hyperparameters(
     max_grad_norm: float | None,
     ent_coef: str | float,
     ent_coef_monotone: bool | str,
-    ent_coef_max: float | None,
     critic_loss: str,
     update_precision: str,
     cuda_graphs: bool,
@@ -134,11 +133,6 @@ def check_hyperparameters(
         ": True is the paper's clamp (alpha never increases), 'above_target' holds alpha only while the entropy is "
         "at or above its target, False leaves it free",
     )
-    if ent_coef_max is not None:
-        if not parse_ent_coef(ent_coef)[0]:
-            raise ValueError(f"CGAC: ent_coef_max bounds a learned alpha, but ent_coef is fixed at {ent_coef}: use 'auto'.")
-        if not (isinstance(ent_coef_max, int | float) and math.isfinite(ent_coef_max) and ent_coef_max > 0):
-            raise ValueError(f"CGAC: ent_coef_max must be None or a number > 0 (e.g. 0.02), got {ent_coef_max!r}.")
     check_choice("critic_loss", critic_loss, ("huber", "mse"))
     check_choice("update_precision", update_precision, UPDATE_PRECISIONS)
     if not isinstance(cuda_graphs, bool):

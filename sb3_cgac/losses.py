@@ -3,7 +3,6 @@ CGAC's loss functions, pure functions of tensors and networks (as sb3-contrib ke
 its algorithms).
 """
 
-import math
 from collections.abc import Callable
 
 import torch as th
@@ -144,7 +143,6 @@ def update_log_ent_coef(
     weight_sum: th.Tensor,
     target_entropy: th.Tensor | float,
     mode: bool | str = "above_target",
-    max_value: float | None = None,
     average: Callable[[th.Tensor], th.Tensor] | None = None,
 ) -> th.Tensor:
     """
@@ -158,7 +156,6 @@ def update_log_ent_coef(
     :param weight_sum: Their sum (at least 1)
     :param target_entropy: The target entropy ``-beta * |A|``
     :param mode: The clamp: True (the paper's), ``"above_target"`` or False
-    :param max_value: Upper bound of alpha (None: none)
     :param average: With data-parallel training, the mean over the ranks: of the entropy gap, which is both the
         gradient and what the clamp decides on, so that every rank updates alpha alike
     :return: The loss of the update (detached)
@@ -171,9 +168,7 @@ def update_log_ent_coef(
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
-    with th.no_grad():
-        if mode:
+    if mode:
+        with th.no_grad():
             log_ent_coef.copy_(clamped_log_ent_coef(log_ent_coef, previous, entropy_gap, mode))
-        if max_value is not None:
-            log_ent_coef.clamp_(max=math.log(max_value))
     return loss.detach()

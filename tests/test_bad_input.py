@@ -76,8 +76,6 @@ def test_unbounded_box():
         (dict(predict_tau=0.01, policy_kwargs=dict(predict_actor=False)), "predict_actor=False but predict_tau is 0.01"),
         (dict(policy_kwargs=dict(mean_init_scale=-0.01)), "mean_init_scale must be a finite number >= 0"),
         (dict(policy_kwargs=dict(mean_init_scale=float("nan"))), "mean_init_scale must be a finite number >= 0"),
-        (dict(ent_coef_max=0.0), "ent_coef_max must be None or a number > 0"),
-        (dict(ent_coef=0.1, ent_coef_max=0.02), "ent_coef_max bounds a learned alpha"),
     ],
 )
 def test_inconsistent_hyperparameters(kwargs, message):
