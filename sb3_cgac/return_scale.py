@@ -7,7 +7,7 @@ cannot blow them up. Statistics stay on the device: no host sync per step.
 
 import torch as th
 
-from sb3_cgac.torch_layers import RunningObsNormalizer
+from sb3_cgac.torch_layers import AllReduce, RunningObsNormalizer
 
 # Scaled discounted returns stay within about +/- this (SimbaV2's G_max)
 RETURN_LIMIT = 5.0
@@ -18,8 +18,9 @@ SCALE_EPS = 1e-4
 class ReturnScale:
     """
     Running statistics of every env's discounted return ``G_t = gamma * G_{t-1} + r_t`` (reset at episode ends) over
-    all envs and steps seen: their mean and variance (the policy's running normaliser, merged batch by batch) and the
-    largest ``|G|``. ``scale_rewards`` updates them with a step's rewards, then divides the rewards by the scale.
+    all envs and steps seen (with data-parallel training, those of every rank): their mean and variance (the policy's
+    running normaliser, merged batch by batch) and the largest ``|G|``. ``scale_rewards`` updates them with a step's
+    rewards, then divides the rewards by the scale.
 
     :param gamma: Discount factor of the returns (the algorithm's)
     :param device: Device of the statistics (the rewards')
@@ -46,21 +47,31 @@ class ReturnScale:
         """:return: The current divisor of the rewards, a scalar on the device"""
         return th.maximum(self.statistics.var.sqrt(), self.max_abs / RETURN_LIMIT).clamp_min(SCALE_EPS)
 
-    def scale_rewards(self, rewards: th.Tensor, dones: th.Tensor) -> th.Tensor:
+    def scale_rewards(
+        self,
+        rewards: th.Tensor,
+        dones: th.Tensor,
+        all_reduce: AllReduce | None = None,
+        all_max: AllReduce | None = None,
+    ) -> th.Tensor:
         """
         Update the statistics with one step of every env, then scale its rewards.
 
         :param rewards: Rewards of the step, shape (n_envs,); non-finite ones are left out of the statistics (the window
             excludes them) and returned as they are
         :param dones: Whether each env's episode ended at this step (its return restarts at the next one)
+        :param all_reduce: With data-parallel training, the sum over the ranks (``DataParallel.sum``)
+        :param all_max: With data-parallel training, the maximum over the ranks (``DataParallel.max``): with both, every
+            rank merges the returns of all ranks and divides by the same scale, as its critics' averaged gradients need
         :return: The rewards divided by the scale
         """
         finite = th.isfinite(rewards)
         if self.returns is None or self.returns.shape != rewards.shape:
             self.returns = th.zeros_like(rewards)
         returns = self.gamma * self.returns + th.where(finite, rewards, 0.0)
-        self.statistics.update(returns, finite)
-        self.max_abs = th.maximum(self.max_abs, th.where(finite, returns.abs(), 0.0).max())
+        self.statistics.update(returns, finite, all_reduce)
+        step_max = th.where(finite, returns.abs(), 0.0).max()
+        self.max_abs = th.maximum(self.max_abs, step_max if all_max is None else all_max(step_max))
         self.returns = th.where(dones.to(returns.device), 0.0, returns)
         return th.where(finite, rewards / self.scale(), rewards)
 

@@ -133,7 +133,8 @@ class WindowOnPolicyAlgorithm(OnPolicyAlgorithm):
                 next_actions = self.policy.actor_avg.sample(step.bootstrap_observations(), 1)[0]
 
             if self.return_scale is not None:  # the window's rewards only: the callbacks' locals keep the env's
-                step = step._replace(rewards=self.return_scale.scale_rewards(step.rewards, step.dones))
+                reductions = (self._parallel.sum, self._parallel.max) if self._parallel else (None, None)
+                step = step._replace(rewards=self.return_scale.scale_rewards(step.rewards, step.dones, *reductions))
             rollout_buffer.add(actions, step, next_actions)
             self._last_obs = self._rollout_obs = new_obs
             self._pending_actions = next_step_actions

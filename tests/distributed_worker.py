@@ -41,7 +41,7 @@ CRITIC_OPTIONS = dict(critic_layer_norm=True, n_bins=21, actor_q_reduction="mean
 def small_model(critic_options: bool = False) -> CGAC:
     env = make_vec_env("Pendulum-v1", n_envs=8)
     policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True, **(CRITIC_OPTIONS if critic_options else {}))
-    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, policy_kwargs=policy_kwargs, seed=0)
+    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, scale_rewards=True, policy_kwargs=policy_kwargs, seed=0)
 
 
 def flat_state(model: CGAC) -> th.Tensor:
@@ -68,6 +68,10 @@ def main() -> None:
         # The normaliser merged the rows of both ranks: 8 envs x (60 steps + the first observation) each
         result["normalizer_count"] = float(model.policy.obs_normalizer.count)
         result["num_timesteps"] = model.num_timesteps
+        # The reward scale merged the returns of both ranks: 8 envs x 60 steps each, one divisor on every rank
+        assert model.return_scale is not None
+        result["return_count"] = float(model.return_scale.statistics.count)
+        result["reward_scale"] = float(model.return_scale.scale())
         if rank == 0:
             model.save(folder / "model")
             # Loaded on rank 0 alone (to evaluate) it waits for no other rank

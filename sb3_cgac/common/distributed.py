@@ -134,6 +134,12 @@ class DataParallel:
         dist.all_reduce(total)
         return total
 
+    def max(self, tensor: th.Tensor) -> th.Tensor:
+        """The elementwise maximum of ``tensor`` over the ranks (a new tensor)."""
+        total = tensor.clone()
+        dist.all_reduce(total, op=dist.ReduceOp.MAX)
+        return total
+
     def mean(self, tensor: th.Tensor) -> th.Tensor:
         """The mean of ``tensor`` over the ranks (a new tensor)."""
         return self.sum(tensor) / self.world_size
