@@ -26,7 +26,7 @@ from sb3_cgac.hyperparameters import (
     resolve_update_precision,
     warn_few_envs,
 )
-from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef, weighted_median
+from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
 from sb3_cgac.return_scale import ReturnScale
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
@@ -75,9 +75,6 @@ class CGAC(WindowOnPolicyAlgorithm):
     :param ent_coef_monotone: Clamp of the learned alpha (Sec. 4.2): ``"above_target"`` keeps it from rising while
         the entropy is at or above its target; ``True`` is the paper's ``alpha = min(alpha_prev, alpha_new)``;
         ``False`` leaves it free (SAC)
-    :param entropy_estimate: How alpha's update (Eq. 12) reads the minibatch's entropy: ``"mean"`` (SAC's) or
-        ``"median"``, the entropy of the minibatch's median state, so that actions saturated in a minority of states
-        (a swing-up's full torques) do not raise alpha for all of them, while a policy saturated in most states does
     :param scale_rewards: Divide the rewards the critics learn from by ``max(std(G), max|G| / 5)`` of the envs'
         running discounted returns ``G`` (SimbaV2's scaling), so that their targets sit in a fixed range whatever the
         reward scale; the statistics are saved with the model (under torchrun, merged over the ranks), and the
@@ -135,7 +132,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         ent_coef: str | float = "auto_0.1",
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
-        entropy_estimate: str = "mean",
         scale_rewards: bool = False,
         critic_loss: str = "huber",
         max_grad_norm: float = 20.0,
@@ -181,7 +177,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.predict_tau = predict_tau
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
-        self.entropy_estimate = entropy_estimate
         self.scale_rewards = scale_rewards
         self.critic_loss = critic_loss
         self.update_precision = update_precision
@@ -327,13 +322,11 @@ class CGAC(WindowOnPolicyAlgorithm):
 
         statistics = {"actor_loss": loss.detach(), "actor_grad_norm": grad_norm}
         statistics["entropy"] = -(log_prob * data.weights).sum() / weight_sum
-        if self.entropy_estimate == "median":
-            statistics["entropy_median"] = -weighted_median(log_prob.detach(), data.weights)
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             alpha_args = (log_prob, data.weights, weight_sum, target_entropy, self.ent_coef_monotone)
             average = self._parallel.mean if self._parallel is not None else None
             statistics["ent_coef_loss"] = update_log_ent_coef(
-                self.log_ent_coef, self.ent_coef_optimizer, *alpha_args, average=average, estimate=self.entropy_estimate
+                self.log_ent_coef, self.ent_coef_optimizer, *alpha_args, average=average
             )
         self.policy.polyak_update(self.tau, self.policy_tau, self.predict_tau)
         return statistics

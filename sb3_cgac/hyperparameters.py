@@ -39,8 +39,6 @@ SAMPLES_PER_TRANSITION = 8
 FEW_ENVS = 16
 # Clamps of the learned entropy coefficient (see CGAC's ``ent_coef_monotone``)
 ENT_COEF_CLAMPS = (True, False, "above_target")
-# How alpha's update reads the minibatch's entropy (see CGAC's ``entropy_estimate``)
-ENTROPY_ESTIMATES = ("mean", "median")
 # Precision of the networks in the updates ("auto": see ``resolve_update_precision``)
 UPDATE_PRECISIONS = ("auto", "float32", "bfloat16")
 # gamma="auto": the discount from the episodes' time limit (TD-MPC2's rule), within this range; without a time limit
@@ -89,7 +87,6 @@ def check_hyperparameters(
     max_grad_norm: float | None,
     ent_coef: str | float,
     ent_coef_monotone: bool | str,
-    entropy_estimate: str,
     critic_loss: str,
     update_precision: str,
     cuda_graphs: bool,
@@ -135,12 +132,6 @@ def check_hyperparameters(
         ENT_COEF_CLAMPS,
         ": True is the paper's clamp (alpha never increases), 'above_target' holds alpha only while the entropy is "
         "at or above its target, False leaves it free",
-    )
-    check_choice(
-        "entropy_estimate",
-        entropy_estimate,
-        ENTROPY_ESTIMATES,
-        ": 'mean' is SAC's (the minibatch's mean), 'median' the entropy of the minibatch's median state",
     )
     check_choice("critic_loss", critic_loss, ("huber", "mse"))
     check_choice("update_precision", update_precision, UPDATE_PRECISIONS)

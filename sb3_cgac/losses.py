@@ -135,20 +135,6 @@ def clamped_log_ent_coef(
     return clamped
 
 
-def weighted_median(values: th.Tensor, weights: th.Tensor) -> th.Tensor:
-    """
-    The weighted median of ``values``: the smallest value at which the weights of the values at or below it reach half
-    of all the weights; on the device (no host sync).
-
-    :param values: A batch of values, shape (B,)
-    :param weights: Their non-negative weights, shape (B,); all zero: the smallest value
-    """
-    order = th.argsort(values)
-    cumulative = th.cumsum(weights[order], dim=0)
-    index = th.searchsorted(cumulative, cumulative[-1:] * 0.5).clamp_max(len(values) - 1)
-    return values[order][index].reshape(())
-
-
 def update_log_ent_coef(
     log_ent_coef: th.Tensor,
     optimizer: th.optim.Optimizer,
@@ -158,7 +144,6 @@ def update_log_ent_coef(
     target_entropy: th.Tensor | float,
     mode: bool | str = "above_target",
     average: Callable[[th.Tensor], th.Tensor] | None = None,
-    estimate: str = "mean",
 ) -> th.Tensor:
     """
     One update of the learned entropy coefficient (paper Eq. 12) followed by its clamp (``clamped_log_ent_coef``):
@@ -173,13 +158,9 @@ def update_log_ent_coef(
     :param mode: The clamp: True (the paper's), ``"above_target"`` or False
     :param average: With data-parallel training, the mean over the ranks: of the entropy gap, which is both the
         gradient and what the clamp decides on, so that every rank updates alpha alike
-    :param estimate: ``"mean"``: the gap of the minibatch's weighted mean (SAC's); ``"median"``: of its weighted median
     :return: The loss of the update (detached)
     """
-    if estimate == "median":
-        entropy_gap = weighted_median(log_prob.detach(), weights) + target_entropy
-    else:
-        entropy_gap = ((log_prob.detach() + target_entropy) * weights).sum() / weight_sum
+    entropy_gap = ((log_prob.detach() + target_entropy) * weights).sum() / weight_sum
     if average is not None:
         entropy_gap = average(entropy_gap)
     loss = -(log_ent_coef * entropy_gap).sum()

@@ -71,7 +71,6 @@ def test_unbounded_box():
         (dict(max_grad_norm=0.0), "max_grad_norm must be > 0"),
         (dict(update_precision="float16"), r"update_precision 'float16'; choose one of \('auto', 'float32', 'bfloat16'\)"),
         (dict(cuda_graphs="yes"), "cuda_graphs must be True or False"),
-        (dict(entropy_estimate="min"), r"entropy_estimate 'min'; choose one of \('mean', 'median'\)"),
         (dict(predict_tau=0.0), r"predict_tau must be None or in \(0, 1\]"),
         (dict(policy_kwargs=dict(predict_actor=True)), "predict_actor=True but predict_tau is None"),
         (dict(predict_tau=0.01, policy_kwargs=dict(predict_actor=False)), "predict_actor=False but predict_tau is 0.01"),

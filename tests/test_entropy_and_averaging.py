@@ -9,7 +9,6 @@ from stable_baselines3.common.env_util import make_vec_env
 from sb3_cgac import CGAC
 from sb3_cgac.callbacks import ProgressEntropySchedule, RewardEntropySchedule
 from sb3_cgac.hyperparameters import resolve_batch_size, resolve_critic_updates_per_step, resolve_polyak_rates
-from sb3_cgac.losses import update_log_ent_coef, weighted_median
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 
@@ -99,37 +98,6 @@ def test_alpha_clamp_releases_only_below_target():
             assert model.log_ent_coef.item() > before
         else:
             assert model.log_ent_coef.item() <= before
-
-
-def test_weighted_median():
-    values = th.tensor([5.0, -1.0, 3.0, 0.0, 100.0])
-    assert weighted_median(values, th.ones(5)).item() == 3.0
-    # Zero weights leave their values out; a heavy weight pulls the median to its value
-    assert weighted_median(values, th.tensor([1.0, 1.0, 1.0, 1.0, 0.0])).item() == 0.0
-    assert weighted_median(values, th.tensor([0.0, 0.0, 0.0, 1.0, 3.0])).item() == 100.0
-    assert weighted_median(values, th.tensor([True, False, True, False, True])).item() == 5.0
-
-
-@pytest.mark.parametrize("estimate, rises", [("mean", True), ("median", False)])
-def test_median_entropy_ignores_a_saturated_minority(estimate, rises):
-    """A third of the states saturated (log pi 6: entropy -6), the rest at +1 against a target of 0: the mean
-    entropy is below the target and raises alpha; the median state is above it and lowers alpha."""
-    log_prob = th.cat([th.full((30,), 6.0), th.full((60,), -1.0)])
-    weights = th.ones(90)
-    log_alpha = th.zeros(1, requires_grad=True)
-    optimizer = th.optim.Adam([log_alpha], lr=0.01)
-    update_log_ent_coef(log_alpha, optimizer, log_prob, weights, weights.sum(), 0.0, False, estimate=estimate)
-    assert (log_alpha.item() > 0) == rises
-    # Saturated in most states, both raise alpha
-    log_alpha.data.zero_()
-    update_log_ent_coef(log_alpha, optimizer, -log_prob + 5.0, weights, weights.sum(), 0.0, False, estimate=estimate)
-    assert log_alpha.item() > 0
-
-
-def test_median_entropy_is_logged(tmp_path):
-    model = CGAC("MlpPolicy", make_vec_env(ConstantRewardEnv, n_envs=8, seed=0), entropy_estimate="median", **SMALL)
-    model.learn(400)
-    assert "train/entropy_median" in model.logger.name_to_value
 
 
 def test_alpha_decreases_when_entropy_is_above_target():
