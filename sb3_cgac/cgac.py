@@ -80,7 +80,7 @@ class CGAC(WindowOnPolicyAlgorithm):
         reward scale; the statistics are saved with the model (under torchrun, merged over the ranks), and the
         callbacks and logs see the env's rewards
     :param scale_actor_q: Divide the Q-values in the actor's loss (Eq. 7) by their running 5th-95th percentile range,
-        at least 1 (TD-MPC2's scale), so that a fixed ``ent_coef`` weighs the entropy against the spread of Q; saved
+        at least 0.5 (TD-MPC2's scale), so that a fixed ``ent_coef`` weighs the entropy against the spread of Q; saved
         with the model, logged as ``train/q_spread``
     :param critic_loss: The scalar critics' regression loss (Eq. 8): ``"huber"``, the paper code's adaptive Huber
         loss (squared below 4x the minibatch's median error, linear above), or ``"mse"``, the squared error, which

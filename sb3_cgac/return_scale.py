@@ -16,10 +16,11 @@ from sb3_cgac.torch_layers import AllReduce, RunningObsNormalizer
 RETURN_LIMIT = 5.0
 # Floor of the scale, so that an all-zero reward stream leaves rewards unchanged rather than dividing by zero
 SCALE_EPS = 1e-4
-# TD-MPC2's scale of the actor's Q: the range between these quantiles of a minibatch's Q, at least Q_SPREAD_MIN,
-# averaged into the running value at Q_SPREAD_RATE per update
+# TD-MPC2's scale of the actor's Q: the range between these quantiles of a minibatch's Q, at least Q_SPREAD_MIN (TD-MPC2:
+# 1 in its unscaled returns; here in scaled ones, where a solved HalfCheetah-v5's range falls to about 0.4), averaged
+# into the running value at Q_SPREAD_RATE per update
 Q_SPREAD_QUANTILES = (0.05, 0.95)
-Q_SPREAD_MIN = 1.0
+Q_SPREAD_MIN = 0.5
 Q_SPREAD_RATE = 0.01
 
 
@@ -110,7 +111,7 @@ def weighted_quantiles(values: th.Tensor, weights: th.Tensor, quantiles: tuple[f
 class QSpread:
     """
     The running scale of the Q-values in the actor's loss (TD-MPC2's ``RunningScale``): the 5th-95th percentile range
-    of each minibatch's Q, at least 1, averaged at a rate of 0.01 per update. Dividing Q by it makes a fixed alpha
+    of each minibatch's Q, at least 0.5, averaged at a rate of 0.01 per update. Dividing Q by it makes a fixed alpha
     weigh the entropy against the spread of Q: more when the critics tell states far apart, less when they do not.
 
     :param device: Device of the statistics (the critics')

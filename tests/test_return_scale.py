@@ -10,7 +10,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from sb3_cgac import CGAC
 from sb3_cgac.hyperparameters import episode_horizon, horizon_gamma
 from sb3_cgac.losses import actor_loss
-from sb3_cgac.return_scale import Q_SPREAD_RATE, RETURN_LIMIT, QSpread, ReturnScale, weighted_quantiles
+from sb3_cgac.return_scale import Q_SPREAD_MIN, Q_SPREAD_RATE, RETURN_LIMIT, QSpread, ReturnScale, weighted_quantiles
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 
@@ -109,9 +109,9 @@ def test_q_spread_follows_td_mpc2():
     # A spread of 10 between the 5th and 95th percentiles moves the running value by 1% of the gap
     q_values = th.linspace(0.0, 10.0, 1001)
     assert q_spread.update(q_values, th.ones(1001)).item() == pytest.approx(1.0 + Q_SPREAD_RATE * (9.0 - 1.0), rel=1e-4)
-    # A spread below 1 counts as 1: the value stays where it is
-    q_spread.value.fill_(1.0)
-    assert q_spread.update(th.linspace(0.0, 0.1, 100), th.ones(100)).item() == 1.0
+    # A spread below the floor counts as the floor: at the floor, the value stays where it is
+    q_spread.value.fill_(Q_SPREAD_MIN)
+    assert q_spread.update(th.linspace(0.0, 0.1, 100), th.ones(100)).item() == Q_SPREAD_MIN
 
 
 def test_scale_actor_q_divides_the_actors_q(tmp_path):
@@ -119,7 +119,7 @@ def test_scale_actor_q_divides_the_actors_q(tmp_path):
     model = CGAC("MlpPolicy", env, scale_actor_q=True, ent_coef=0.01, batch_size=64, **SMALL)
     model.learn(8 * 64)
     spread = model.q_spread.value.item()
-    assert spread > 1.0 and model.logger.name_to_value["train/q_spread"] == pytest.approx(spread, rel=0.1)
+    assert spread > Q_SPREAD_MIN and model.logger.name_to_value["train/q_spread"] == pytest.approx(spread, rel=0.1)
     # The loss with the scale is the loss without it with Q divided by the scale (at alpha 0: exactly)
     data = model.rollout_buffer.sample(64)
     alpha = th.tensor(0.0)
