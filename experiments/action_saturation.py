@@ -40,15 +40,12 @@ PROBE_VALUES = (-1.0, -0.5, 0.0, 0.5, 1.0)
 
 
 def gaussian_entropy_actor_loss(
-    actor, critic, observations, weights, weight_sum, ent_coef, autocast_dtype=None, q_reduction="min", q_spread=None,
-    average=None,
-):  # type: ignore[no-untyped-def]  # fmt: skip
+    actor, critic, observations, weights, weight_sum, ent_coef, autocast_dtype=None, q_reduction="min"
+):  # type: ignore[no-untyped-def]
     """``losses.actor_loss`` in float32, returning the pre-tanh log-probability (what alpha's update reads) instead."""
     actions, log_prob = actor.action_log_prob(observations)
     q_values = critic.q_values(observations, actions)
     q_value = q_values.min(dim=0).values if q_reduction == "min" else q_values.mean(dim=0)
-    if q_spread is not None:
-        q_value = q_value / q_spread.update(q_value.detach(), weights, average)
     loss = ((ent_coef * log_prob - q_value) * weights).sum() / weight_sum
     return loss, (log_prob + th.log(1 - actions**2 + TANH_EPSILON).sum(dim=1)).detach()
 

@@ -28,7 +28,7 @@ from sb3_cgac.hyperparameters import (
 )
 from sb3_cgac.losses import actor_loss, critic_loss, update_log_ent_coef
 from sb3_cgac.policies import Actor, CGACCritic, CGACPolicy, MlpPolicy, MultiInputPolicy
-from sb3_cgac.return_scale import QSpread, ReturnScale
+from sb3_cgac.return_scale import ReturnScale
 from sb3_cgac.window_algorithm import WindowOnPolicyAlgorithm
 
 SelfCGAC = TypeVar("SelfCGAC", bound="CGAC")
@@ -79,9 +79,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         running discounted returns ``G`` (SimbaV2's scaling), so that their targets sit in a fixed range whatever the
         reward scale; the statistics are saved with the model (under torchrun, merged over the ranks), and the
         callbacks and logs see the env's rewards
-    :param scale_actor_q: Divide the Q-values in the actor's loss (Eq. 7) by their running 5th-95th percentile range,
-        at least 0.5 (TD-MPC2's scale), so that a fixed ``ent_coef`` weighs the entropy against the spread of Q; saved
-        with the model, logged as ``train/q_spread``
     :param critic_loss: The scalar critics' regression loss (Eq. 8): ``"huber"``, the paper code's adaptive Huber
         loss (squared below 4x the minibatch's median error, linear above), or ``"mse"``, the squared error, which
         keeps the full gradient of a sparse reward's rare large targets (categorical critics use their cross-entropy)
@@ -115,8 +112,6 @@ class CGAC(WindowOnPolicyAlgorithm):
     critic_updates_per_step: int
     tau: float
     policy_tau: float
-    # The running scale of the actor's Q (scale_actor_q); None without it, and in models saved before it
-    q_spread: QSpread | None = None
 
     def __init__(
         self,
@@ -138,7 +133,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         target_entropy_beta: float = 1.0,
         ent_coef_monotone: bool | str = "above_target",
         scale_rewards: bool = False,
-        scale_actor_q: bool = False,
         critic_loss: str = "huber",
         max_grad_norm: float = 20.0,
         update_precision: str = "float32",
@@ -184,7 +178,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         self.target_entropy_beta = target_entropy_beta
         self.ent_coef_monotone = ent_coef_monotone
         self.scale_rewards = scale_rewards
-        self.scale_actor_q = scale_actor_q
         self.critic_loss = critic_loss
         self.update_precision = update_precision
         self.cuda_graphs = cuda_graphs
@@ -229,8 +222,6 @@ class CGAC(WindowOnPolicyAlgorithm):
             self.gamma = horizon_gamma(episode_horizon(self.env))
         if self.scale_rewards:  # a loaded model keeps its statistics
             self.return_scale = (self.return_scale or ReturnScale(self.gamma)).to(self.device)
-        if self.scale_actor_q:  # likewise
-            self.q_spread = (self.q_spread or QSpread()).to(self.device)
 
         buffer_class: type[CGACRolloutBuffer] = self.rollout_buffer_class or CGACRolloutBuffer  # type: ignore[assignment]
         self.rollout_buffer = buffer_class(
@@ -320,8 +311,6 @@ class CGAC(WindowOnPolicyAlgorithm):
             ent_coef,
             self._autocast_dtype,
             self.policy.actor_q_reduction,
-            self.q_spread,
-            self._parallel.mean if self._parallel is not None else None,
         )
         self.actor.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -375,8 +364,6 @@ class CGAC(WindowOnPolicyAlgorithm):
         scalars = {"finite": finite, "ent_coef": self._ent_coef(), "std": th.exp(self.actor.log_std.detach()).mean()}
         if self.return_scale is not None:
             scalars["reward_scale"] = self.return_scale.scale()
-        if self.q_spread is not None:
-            scalars["q_spread"] = self.q_spread.value
         stats = read_statistics(scalars, statistics)
         check_finite_parameters(bool(stats.pop("finite")), self._n_updates)
         stats.update(target_entropy=target_entropy, beta=self.target_entropy_beta, tau=self.tau, policy_tau=self.policy_tau)

@@ -9,7 +9,6 @@ import torch as th
 from stable_baselines3.common.type_aliases import PyTorchObs
 
 from sb3_cgac.policies import Actor, CGACCritic
-from sb3_cgac.return_scale import QSpread
 
 # A concatenation over the ranks of data-parallel training (last dimension)
 Gather = Callable[[th.Tensor], th.Tensor]
@@ -86,8 +85,6 @@ def actor_loss(
     ent_coef: th.Tensor,
     autocast_dtype: th.dtype | None = None,
     q_reduction: str = "min",
-    q_spread: QSpread | None = None,
-    average: Callable[[th.Tensor], th.Tensor] | None = None,
 ) -> tuple[th.Tensor, th.Tensor]:
     """
     The actor loss of paper Eq. 7, ``E[alpha * log pi(a|s) - Q(s, a)]`` with reparameterised actions, where Q is the
@@ -102,17 +99,12 @@ def actor_loss(
     :param ent_coef: The entropy coefficient alpha (detached)
     :param autocast_dtype: Run the networks under autocast to this dtype (e.g. ``th.bfloat16``); None: float32
     :param q_reduction: How the actor reads the critics: ``"min"`` (paper Eq. 11) or ``"mean"``
-    :param q_spread: The running scale of Q (``scale_actor_q``): updated with this minibatch's Q, which is then divided
-        by it; None: Q as it is
-    :param average: With data-parallel training, the mean over the ranks (of the minibatch's Q spread)
     :return: The loss, and the log-probabilities of the sampled actions (detached)
     """
     with th.autocast(weights.device.type, dtype=autocast_dtype or th.bfloat16, enabled=autocast_dtype is not None):
         actions_pi, log_prob = actor.action_log_prob(observations)
         q_values = critic.q_values(observations, actions_pi).float()
     q_value = q_values.min(dim=0).values if q_reduction == "min" else q_values.mean(dim=0)
-    if q_spread is not None:
-        q_value = q_value / q_spread.update(q_value.detach(), weights, average)
     log_prob = log_prob.float()
     loss = ((ent_coef * log_prob - q_value) * weights).sum() / weight_sum
     return loss, log_prob.detach()

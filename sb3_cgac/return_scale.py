@@ -2,11 +2,8 @@
 Reward scaling by the spread of the discounted returns (SimbaV2, Lee et al., 2025): each reward is divided by
 ``max(std(G), max|G| / RETURN_LIMIT)``, where ``G`` is each env's running discounted return, so that the critics'
 targets sit in a fixed range whatever the task's reward scale, and a sparse reward that fires for the first time
-cannot blow them up. And the scale of the Q-values in the actor's loss (TD-MPC2, Hansen et al., 2024): their running
-5th-95th percentile range. Statistics stay on the device: no host sync per step.
+cannot blow them up. Statistics stay on the device: no host sync per step.
 """
-
-from collections.abc import Callable
 
 import torch as th
 
@@ -16,12 +13,6 @@ from sb3_cgac.torch_layers import AllReduce, RunningObsNormalizer
 RETURN_LIMIT = 5.0
 # Floor of the scale, so that an all-zero reward stream leaves rewards unchanged rather than dividing by zero
 SCALE_EPS = 1e-4
-# TD-MPC2's scale of the actor's Q: the range between these quantiles of a minibatch's Q, at least Q_SPREAD_MIN (TD-MPC2:
-# 1 in its unscaled returns; here in scaled ones, where a solved HalfCheetah-v5's range falls to about 0.4), averaged
-# into the running value at Q_SPREAD_RATE per update
-Q_SPREAD_QUANTILES = (0.05, 0.95)
-Q_SPREAD_MIN = 0.5
-Q_SPREAD_RATE = 0.01
 
 
 class ReturnScale:
@@ -89,57 +80,3 @@ class ReturnScale:
         state = self.__dict__.copy()
         state["returns"] = None
         return state
-
-
-def weighted_quantiles(values: th.Tensor, weights: th.Tensor, quantiles: tuple[float, ...]) -> th.Tensor:
-    """
-    Quantiles of ``values`` under non-negative ``weights``: for each ``q``, the smallest value at which the weights of
-    the values at or below it reach ``q`` of all the weights; on the device (no host sync).
-
-    :param values: A batch of values, shape (B,)
-    :param weights: Their weights, shape (B,) (boolean or float; zero leaves a value out)
-    :param quantiles: The quantiles, each in [0, 1]
-    :return: One value per quantile, shape (len(quantiles),)
-    """
-    order = th.argsort(values)
-    cumulative = th.cumsum(weights[order].float(), dim=0)
-    levels = th.tensor(quantiles, dtype=cumulative.dtype, device=values.device) * cumulative[-1]
-    index = th.searchsorted(cumulative, levels).clamp_max(len(values) - 1)
-    return values[order][index]
-
-
-class QSpread:
-    """
-    The running scale of the Q-values in the actor's loss (TD-MPC2's ``RunningScale``): the 5th-95th percentile range
-    of each minibatch's Q, at least 0.5, averaged at a rate of 0.01 per update. Dividing Q by it makes a fixed alpha
-    weigh the entropy against the spread of Q: more when the critics tell states far apart, less when they do not.
-
-    :param device: Device of the statistics (the critics')
-    """
-
-    def __init__(self, device: th.device | str = "cpu"):
-        self.value = th.ones((), device=device)
-
-    def to(self, device: th.device | str) -> "QSpread":
-        """Move the statistics to ``device`` (a model loaded on another device)."""
-        self.value = self.value.to(device)
-        return self
-
-    @th.no_grad()
-    def update(
-        self, q_values: th.Tensor, weights: th.Tensor, average: Callable[[th.Tensor], th.Tensor] | None = None
-    ) -> th.Tensor:
-        """
-        Merge a minibatch's Q-values into the running scale.
-
-        :param q_values: The Q-values the actor's loss reads, shape (B,)
-        :param weights: Their weights (0 for excluded transitions)
-        :param average: With data-parallel training, the mean over the ranks, so that every rank holds the same scale
-        :return: The updated scale (a scalar on the device)
-        """
-        low, high = weighted_quantiles(q_values.float(), weights, Q_SPREAD_QUANTILES)
-        spread = (high - low).clamp_min(Q_SPREAD_MIN)
-        if average is not None:
-            spread = average(spread)
-        self.value.lerp_(spread, Q_SPREAD_RATE)
-        return self.value

@@ -41,9 +41,7 @@ CRITIC_OPTIONS = dict(critic_layer_norm=True, n_bins=21, actor_q_reduction="mean
 def small_model(critic_options: bool = False) -> CGAC:
     env = make_vec_env("Pendulum-v1", n_envs=8)
     policy_kwargs = dict(net_arch=[32, 32], normalize_observations=True, **(CRITIC_OPTIONS if critic_options else {}))
-    return CGAC(
-        "MlpPolicy", env, batch_size=64, n_steps=2, scale_rewards=True, scale_actor_q=True, policy_kwargs=policy_kwargs, seed=0
-    )
+    return CGAC("MlpPolicy", env, batch_size=64, n_steps=2, scale_rewards=True, policy_kwargs=policy_kwargs, seed=0)
 
 
 def flat_state(model: CGAC) -> th.Tensor:
@@ -74,8 +72,6 @@ def main() -> None:
         assert model.return_scale is not None
         result["return_count"] = float(model.return_scale.statistics.count)
         result["reward_scale"] = float(model.return_scale.scale())
-        assert model.q_spread is not None
-        result["q_spread"] = float(model.q_spread.value)
         if rank == 0:
             model.save(folder / "model")
             # Loaded on rank 0 alone (to evaluate) it waits for no other rank

@@ -1,5 +1,4 @@
-"""gamma='auto' (the discount from the time limit), scale_rewards (the rewards divided by the returns' spread) and
-scale_actor_q (the actor's Q divided by its running spread)."""
+"""gamma='auto' (the discount from the time limit) and scale_rewards (the rewards divided by the returns' spread)."""
 
 import gymnasium as gym
 import numpy as np
@@ -9,8 +8,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_cgac import CGAC
 from sb3_cgac.hyperparameters import episode_horizon, horizon_gamma
-from sb3_cgac.losses import actor_loss
-from sb3_cgac.return_scale import Q_SPREAD_MIN, Q_SPREAD_RATE, RETURN_LIMIT, QSpread, ReturnScale, weighted_quantiles
+from sb3_cgac.return_scale import RETURN_LIMIT, ReturnScale
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), seed=0)
 
@@ -94,46 +92,3 @@ def test_scale_rewards_trains_saves_and_loads(tmp_path):
     count = float(loaded.return_scale.statistics.count)
     loaded.learn(8 * 8, reset_num_timesteps=False)
     assert float(loaded.return_scale.statistics.count) == count + 8 * 8
-
-
-def test_weighted_quantiles():
-    values = th.tensor([5.0, -1.0, 3.0, 0.0, 100.0])
-    assert weighted_quantiles(values, th.ones(5), (0.5,)).tolist() == [3.0]
-    assert weighted_quantiles(values, th.ones(5), (0.05, 0.95)).tolist() == [-1.0, 100.0]
-    # Zero weights leave their values out
-    assert weighted_quantiles(values, th.tensor([True, True, True, True, False]), (0.05, 0.95)).tolist() == [-1.0, 5.0]
-
-
-def test_q_spread_follows_td_mpc2():
-    q_spread = QSpread()
-    # A spread of 10 between the 5th and 95th percentiles moves the running value by 1% of the gap
-    q_values = th.linspace(0.0, 10.0, 1001)
-    assert q_spread.update(q_values, th.ones(1001)).item() == pytest.approx(1.0 + Q_SPREAD_RATE * (9.0 - 1.0), rel=1e-4)
-    # A spread below the floor counts as the floor: at the floor, the value stays where it is
-    q_spread.value.fill_(Q_SPREAD_MIN)
-    assert q_spread.update(th.linspace(0.0, 0.1, 100), th.ones(100)).item() == Q_SPREAD_MIN
-
-
-def test_scale_actor_q_divides_the_actors_q(tmp_path):
-    env = make_vec_env("Pendulum-v1", n_envs=8, seed=0)
-    model = CGAC("MlpPolicy", env, scale_actor_q=True, ent_coef=0.01, batch_size=64, **SMALL)
-    model.learn(8 * 64)
-    spread = model.q_spread.value.item()
-    assert spread > Q_SPREAD_MIN and model.logger.name_to_value["train/q_spread"] == pytest.approx(spread, rel=0.1)
-    # The loss with the scale is the loss without it with Q divided by the scale (at alpha 0: exactly)
-    data = model.rollout_buffer.sample(64)
-    alpha = th.tensor(0.0)
-    model.critic.set_q_requires_grad(False)
-    th.manual_seed(0)
-    plain, _ = actor_loss(model.actor, model.critic, data.observations, data.weights, data.weights.sum(), alpha)
-    th.manual_seed(0)
-    scale = QSpread()
-    scale.value.fill_(spread)
-    scaled, _ = actor_loss(
-        model.actor, model.critic, data.observations, data.weights, data.weights.sum(), alpha, q_spread=scale
-    )
-    assert scaled.item() == pytest.approx(plain.item() / scale.value.item(), rel=1e-5)
-    model.save(tmp_path / "model")
-    loaded = CGAC.load(tmp_path / "model", env=env)
-    assert loaded.scale_actor_q and loaded.q_spread.value.item() == pytest.approx(spread)
-    loaded.learn(8 * 8, reset_num_timesteps=False)

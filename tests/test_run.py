@@ -41,7 +41,6 @@ def make_env(n_envs: int = 4, env_id: str = "Pendulum-v1", **kwargs):
         dict(update_precision="auto"),
         dict(policy_kwargs=dict(net_arch=[16], optimizer_kwargs=dict(foreach=True))),
         dict(predict_tau=0.001),
-        dict(scale_actor_q=True, ent_coef=0.005),
     ],
 )
 def test_run(kwargs):
